@@ -1,0 +1,55 @@
+"""Shared helpers for benchmark scripts: timing medians, JSON output, Monte Carlo checks."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import statistics
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+import smdpjax as sj
+
+
+def timed(fn, repeats: int):
+    """Run ``fn`` ``repeats`` times (after one warm-up that compiles); return (result, [seconds])."""
+    result = jax.block_until_ready(fn())
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        result = jax.block_until_ready(fn())
+        times.append(time.perf_counter() - start)
+    return result, times
+
+
+def median(xs):
+    return float(statistics.median(xs))
+
+
+def monte_carlo(system, grid, solution, cells, per_cell: int, seed: int, max_steps: int,
+                objective: str = "reach_avoid"):
+    """Empirical satisfaction per initial cell ``(len(cells),)`` under the solution's controller."""
+    controller = sj.Controller(grid, solution.policy)
+    x0 = sj.uniform_in_cells(grid, cells, per_cell, jax.random.PRNGKey(seed))
+    res = sj.simulate(system, controller, x0, jax.random.PRNGKey(seed + 1), max_steps=max_steps,
+                      objective=objective)
+    return np.asarray(res.satisfied).reshape(len(cells), per_cell).mean(axis=1), res.undecided
+
+
+def binomial_tolerance(p, n, sigmas: float = 4.0):
+    """Half-width of a ``sigmas``-standard-deviation band for averaged binomial frequencies."""
+    return sigmas * np.sqrt(np.maximum(p * (1 - p), 1e-4) / n)
+
+
+def environment() -> dict:
+    return {"jax": jax.__version__, "backend": jax.default_backend(), "devices": [str(d) for d in jax.devices()],
+            "python": platform.python_version(), "machine": platform.machine(), "cpus": os.cpu_count()}
+
+
+def write_json(path: Path, payload: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(payload, indent=2, default=float))

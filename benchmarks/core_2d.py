@@ -1,0 +1,85 @@
+"""The core pipeline on the 2-D unicycle (30x30 cells, 8 actions, 12x12 + 1 noise cells).
+
+Prints, for IMDP and SMDP built from the same reachable sets: e_avg, abstraction and synthesis
+time (medians over ``--repeats`` runs after a compiling warm-up), memory, p_low/p_up averages
+over 100 initial cells, and the Monte Carlo check (1000 trajectories per initial cell).
+
+    python -m benchmarks.core_2d [--cells 30] [--repeats 3] [--trajectories 1000] [--out results/core_2d.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+
+import smdpjax as sj
+
+from .common import binomial_tolerance, environment, median, monte_carlo, timed, write_json
+
+
+def unicycle_2d(x, u, w):
+    """x' = x + dt (v (cos th_a, sin th_a) + w), dt = 0.1, v = 1."""
+    return x + 0.1 * (jnp.array([jnp.cos(u[0]), jnp.sin(u[0])]) + w)
+
+
+def problem(cells: int = 30):
+    system = sj.System(unicycle_2d, actions=(np.arange(8) * np.pi / 4)[:, None],
+                       noise=sj.Gaussian([0.0, 0.0], [0.3, 0.3]))
+    grid = sj.StateGrid([0, 0], [1, 1], cells, reach=[([0.8, 0.8], [1.0, 1.0])],
+                        avoid=[([0.40, 0.30], [0.60, 0.70]), ([0.75, 0.50], [0.90, 0.65])])
+    noise = sj.NoiseGrid.ball([0.0, 0.0], 2.1, 12)
+    return system, grid, noise
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--cells", type=int, default=30, help="grid cells per dimension")
+    parser.add_argument("--repeats", type=int, default=3, help="timed runs per stage (median reported)")
+    parser.add_argument("--initial", type=int, default=100, help="initial cells |S_0|")
+    parser.add_argument("--trajectories", type=int, default=1000, help="Monte Carlo runs per initial cell")
+    parser.add_argument("--tol", type=float, default=1e-6)
+    parser.add_argument("--out", type=Path, default=Path("results/core_2d.json"))
+    args = parser.parse_args(argv)
+
+    system, grid, noise = problem(args.cells)
+    print(f"{system!r}\n{grid!r}\n{noise!r}\n")
+    cells = sj.metrics.initial_cells(grid, args.initial, seed=0)
+    rows = []
+    for kind in ("imdp", "smdp"):
+        abstraction, t_abs = timed(lambda: sj.abstract(system, grid, noise, kind), args.repeats)
+        solution, t_syn = timed(lambda: sj.synthesize(abstraction, tol=args.tol), args.repeats)
+        p_low, p_up = sj.metrics.average_bounds(solution, cells)
+        sat, undecided = monte_carlo(system, grid, solution, cells, args.trajectories, seed=7, max_steps=1000)
+        p_mc = float(sat.mean())
+        tol = float(binomial_tolerance(p_mc, args.trajectories * len(cells)))
+        per_cell_ok = bool(np.all((sat >= np.asarray(solution.lower)[cells] - binomial_tolerance(sat, args.trajectories))
+                                  & (sat <= np.asarray(solution.upper)[cells] + binomial_tolerance(sat, args.trajectories))))
+        rows.append(dict(kind=kind, states=grid.num_states, actions=system.num_actions, noise_cells=noise.num_cells,
+                         e_avg=sj.metrics.average_error(solution, grid), t_abs_s=median(t_abs), t_abs_runs=t_abs,
+                         t_syn_s=median(t_syn), t_syn_runs=t_syn, memory_bytes=abstraction.nbytes,
+                         iterations=solution.iterations, evaluation_iterations=solution.evaluation_iterations,
+                         p_low_avg=p_low, p_up_avg=p_up, p_mc_avg=p_mc, mc_tolerance=tol,
+                         mc_in_bounds=bool(p_low - tol <= p_mc <= p_up + tol), mc_per_cell_in_bounds=per_cell_ok,
+                         mc_undecided=int(undecided)))
+
+    header = (f"{'class':6} {'|S|':>5} {'|A|':>3} {'|C|':>4} {'e_avg':>7} {'T_abs s':>8} {'T_syn s':>8} "
+              f"{'mem MB':>7} {'iters':>9} {'p_low':>6} {'p_up':>6} {'P_mc':>6}  MC in [p_low, p_up]")
+    print(header)
+    print("-" * len(header))
+    for r in rows:
+        print(f"{r['kind']:6} {r['states']:5d} {r['actions']:3d} {r['noise_cells']:4d} {r['e_avg']:7.4f} "
+              f"{r['t_abs_s']:8.3f} {r['t_syn_s']:8.3f} {r['memory_bytes'] / 1e6:7.2f} "
+              f"{r['iterations']:4d}+{r['evaluation_iterations']:<4d} {r['p_low_avg']:6.3f} {r['p_up_avg']:6.3f} "
+              f"{r['p_mc_avg']:6.3f}  {'yes' if r['mc_in_bounds'] else 'NO'} (avg, +-{r['mc_tolerance']:.4f}); "
+              f"per cell: {'yes' if r['mc_per_cell_in_bounds'] else 'NO'}")
+    write_json(args.out, {"benchmark": "core_2d", "args": {k: str(v) for k, v in vars(args).items()},
+                          "environment": environment(), "rows": rows})
+    print(f"\nwrote {args.out}")
+    return rows
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,54 @@
+"""Uncertain-MDP abstractions of a gridded system: one module per class.
+
+``abstract(system, state_grid, noise_grid, kind)`` computes the reachable sets once
+(``grid_clusters``) and builds the requested class from them.
+"""
+
+from __future__ import annotations
+
+from ..partition import NoiseGrid, StateGrid
+from ..system import System
+from .base import AbstractionMixin
+from .clusters import IndexBoxes, cluster_members, index_boxes
+from .grid_clusters import GridClusters, compute_grid_clusters
+from .imdp import IMDP, interval_min
+from .smdp import SMDP
+
+_BUILDERS = {"imdp": IMDP, "smdp": SMDP}
+KINDS = ("imdp", "2imdp", "mimdp", "smdp")
+
+
+def build(kind: str, grid: StateGrid, clusters: GridClusters, **options):
+    """Build abstraction ``kind`` from precomputed clusters (to share reachable sets across classes)."""
+    if kind not in _BUILDERS:
+        if kind in KINDS:
+            raise NotImplementedError(f"abstraction kind {kind!r} is not available yet")
+        raise ValueError(f"unknown abstraction kind {kind!r}; expected one of {KINDS}")
+    return _BUILDERS[kind].from_clusters(grid, clusters, **options)
+
+
+def abstract(system: System, state_grid: StateGrid, noise_grid: NoiseGrid, kind: str = "smdp", *,
+             method: str = "both", progress: bool = False, **options):
+    """Abstract ``system`` on the partitions into an uncertain MDP of class ``kind``.
+
+    Args:
+        system: the stochastic system.
+        state_grid: the phi-conservative state partition S (with reach/avoid labels).
+        noise_grid: the partition C of W.
+        kind: ``"imdp"``, ``"smdp"`` (and ``"2imdp"``, ``"mimdp"`` where available).
+        method: reachable-set enclosure: ``"natural"``, ``"centered"`` or ``"both"``.
+        progress: show a progress bar over the reachable-set chunks.
+
+    Returns:
+        An ``IMDP`` or ``SMDP`` PyTree, ready for ``smdpjax.synthesize``.
+    """
+    if kind not in KINDS:
+        raise ValueError(f"unknown abstraction kind {kind!r}; expected one of {KINDS}")
+    if kind not in _BUILDERS:
+        raise NotImplementedError(f"abstraction kind {kind!r} is not available yet")
+    clusters = compute_grid_clusters(system, state_grid, noise_grid, method=method, progress=progress)
+    return build(kind, state_grid, clusters, **options)
+
+
+__all__ = ["abstract", "build", "KINDS", "IMDP", "SMDP", "AbstractionMixin", "GridClusters", "IndexBoxes",
+           "compute_grid_clusters", "cluster_members", "index_boxes", "interval_min"]

@@ -1,0 +1,76 @@
+"""What every abstraction class provides to synthesis, simulation and metrics.
+
+States are the grid cells ``0 .. N-1`` and the sink ``N``; value vectors have length ``N + 1``.
+Only the non-terminal cells (``rows``) have transitions: reach cells are absorbing with value 1,
+avoid cells and the sink absorbing with value 0 (the reach-avoid reduction of the paper's RDP).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..partition import AVOID, REACH
+
+
+class AbstractionMixin:
+    """Shared behaviour; subclasses are PyTree dataclasses with ``rows`` and ``labels`` leaves.
+
+    Subclasses implement ``q_values(v, adversary, actions=None)``: the inner problem of the
+    robust Bellman operator for every row, ``min`` (``adversary="min"``) or ``max`` over the
+    ambiguity set of sum_s' gamma(s') v(s'). Shapes: ``v (N+1,)`` -> ``(R, A)``, or ``(R,)`` when
+    ``actions: (R,)`` fixes one action per row. ``restrict(actions)`` returns the single-action
+    abstraction of a stationary strategy (``|A| = 1``), for loops that evaluate one strategy.
+    """
+
+    kind: str = "abstract"
+
+    @property
+    def num_states(self) -> int:
+        """|S|: grid cells plus the sink."""
+        return int(self.labels.shape[0])
+
+    @property
+    def num_rows(self) -> int:
+        return int(self.rows.shape[0])
+
+    def initial_values(self, objective: str = "reach_avoid"):
+        """``(N+1,)`` p^0: the indicator of S_reach (reach-avoid) or of the safe cells (safety)."""
+        labels = jnp.asarray(self.labels)
+        if objective == "reach_avoid":
+            return (labels == REACH).astype(jnp.float64)
+        if objective == "safety":
+            return (labels != AVOID).astype(jnp.float64)
+        raise ValueError(f"unknown objective {objective!r}; expected 'reach_avoid' or 'safety'")
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the arrays that store the abstraction (the paper's memory metric)."""
+        return int(sum(np.asarray(leaf).nbytes for leaf in jax.tree_util.tree_leaves(self)))
+
+    @property
+    def summands_per_backup(self) -> float:
+        """How many nonnegative terms one inner problem adds up (for the rounding allowance)."""
+        raise NotImplementedError
+
+    def rounding_per_backup(self) -> float:
+        """A bound on the float64 rounding error of one Bellman backup (values in [0, 1]).
+
+        A sum of T nonnegative terms of total <= 1 is off by at most ~T u (u = 2^-53); the
+        probabilities P_W(c) carry a few ulps each from erf. The robust Bellman operator is
+        non-expansive in the sup norm, so errors add up over iterations at most linearly.
+        """
+        u = float(np.finfo(np.float64).eps) / 2
+        return 2.02 * (self.summands_per_backup + 4.0) * u * 2
+
+    def _check_values(self, v):
+        if v.shape != (self.num_states,):
+            raise ValueError(f"value vector must have shape ({self.num_states},), got {v.shape}")
+
+
+def check_adversary(adversary: str) -> bool:
+    """True for a minimizing adversary."""
+    if adversary not in ("min", "max"):
+        raise ValueError(f"adversary must be 'min' or 'max', got {adversary!r}")
+    return adversary == "min"

@@ -1,0 +1,101 @@
+"""From (system, state grid, noise grid) to the index boxes of every cluster q_{s,a,c}.
+
+This is the one place where reachable sets are computed; every abstraction class is built from
+its output, so all four classes share the same reachable sets (as the paper's comparison needs).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..partition import NoiseGrid, StateGrid
+from ..reach import reachable_boxes
+from ..system import System
+from .clusters import IndexBoxes, index_boxes
+
+# Reachable boxes per chunk: bounds peak memory (a few hundred MB of float64 temporaries).
+BOXES_PER_CHUNK = 1 << 19
+
+
+@dataclasses.dataclass(frozen=True)
+class GridClusters:
+    """Index boxes of all clusters of the non-terminal rows, and the noise cell probabilities.
+
+    Attributes:
+        rows: ``(R,)`` flat indices of the non-terminal cells the abstraction has transitions for.
+        boxes: ``IndexBoxes`` with leading shape ``(R, A, C_b)``.
+        prob: ``(C_b,)`` P_W of the bounded noise cells.
+        prob_rest: P_W of the remainder cell (0 for bounded noise); its cluster is all of S.
+    """
+
+    rows: np.ndarray
+    boxes: IndexBoxes
+    prob: jax.Array
+    prob_rest: jax.Array
+
+
+def validate(system: System, grid: StateGrid, noise_grid: NoiseGrid) -> np.ndarray:
+    """Check everything that can be checked cheaply; return the non-terminal rows."""
+    if not isinstance(system, System):
+        raise TypeError(f"system must be a smdpjax.System, got {type(system).__name__}")
+    if not isinstance(grid, StateGrid):
+        raise TypeError(f"state_grid must be a smdpjax.StateGrid, got {type(grid).__name__}")
+    if not isinstance(noise_grid, NoiseGrid):
+        raise TypeError(f"noise_grid must be a smdpjax.NoiseGrid, got {type(noise_grid).__name__}")
+    noise_grid.check_covers(system.noise)
+    rows = grid.nonterminal
+    if rows.size == 0:
+        raise ValueError(f"{grid!r} has no non-terminal cell: every cell is a reach or avoid cell")
+    probe = np.asarray(grid.cell_centers(rows[np.linspace(0, rows.size - 1, min(rows.size, 64)).astype(int)]))
+    system.check_against(grid.n, probe)
+    return rows
+
+
+def compute_grid_clusters(system: System, grid: StateGrid, noise_grid: NoiseGrid, *, method: str = "both",
+                          progress: bool = False) -> GridClusters:
+    """Reachable boxes of all (non-terminal cell, action, bounded noise cell) triples, snapped to
+    index boxes on ``grid``. Raises ValueError if the dynamics give NaN bounds anywhere."""
+    if method not in ("natural", "centered", "both"):
+        raise ValueError(f"unknown reachable-set method {method!r}; expected 'natural', 'centered' or 'both'")
+    rows = validate(system, grid, noise_grid)
+    prob, prob_rest = noise_grid.probabilities(system.noise)
+    w_lo, w_hi = noise_grid.boxes()
+    per_row = system.num_actions * noise_grid.num_bounded
+    chunk = int(max(1, min(rows.size, BOXES_PER_CHUNK // per_row)))
+    run = _chunk_fn(system.dynamics, grid, method)
+    starts = range(0, rows.size, chunk)
+    if progress:
+        from tqdm.auto import tqdm
+        starts = tqdm(starts, desc="reachable sets", unit="chunk")
+    parts, nan_rows = [], []
+    for start in starts:
+        idx = rows[start:start + chunk]
+        padded = np.concatenate([idx, np.full(chunk - idx.size, idx[-1])])  # one compiled shape
+        x_lo, x_hi = grid.cell_bounds(padded)
+        boxes, has_nan = run(x_lo, x_hi, jnp.asarray(system.actions), w_lo, w_hi)
+        parts.append(jax.tree.map(lambda a: a[:idx.size], boxes))
+        nan_rows.append(np.asarray(has_nan[:idx.size]))
+    nan_rows = np.concatenate(nan_rows)
+    if nan_rows.any():
+        cell = int(rows[np.flatnonzero(nan_rows)[0]])
+        lo, hi = (np.asarray(b) for b in grid.cell_bounds(cell))
+        raise ValueError(f"the reachable-set bounds of cell {cell} (box {lo.tolist()}..{hi.tolist()}) are NaN: "
+                         f"the dynamics are undefined somewhere on that cell or its noise cells")
+    boxes = jax.tree.map(lambda *a: jnp.concatenate(a), *parts)
+    return GridClusters(rows=rows, boxes=boxes, prob=prob, prob_rest=prob_rest)
+
+
+@functools.lru_cache(maxsize=32)
+def _chunk_fn(dynamics, grid: StateGrid, method: str):
+    @jax.jit
+    def run(x_lo, x_hi, actions, w_lo, w_hi):
+        lo, hi = reachable_boxes(dynamics, x_lo, x_hi, actions, w_lo, w_hi, method)
+        has_nan = jnp.any(jnp.isnan(lo) | jnp.isnan(hi), axis=(1, 2, 3))
+        return index_boxes(grid, lo, hi), has_nan
+
+    return run

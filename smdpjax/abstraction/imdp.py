@@ -1,0 +1,174 @@
+"""Interval MDP abstraction (Lemma 1) and its inner problem.
+
+For each (s, a) and successor s', Lemma 1 gives
+
+    P_low(s, a, s') = sum_c 1(Reach(s,a,c) inside s') P_W(c),
+    P_up(s, a, s')  = sum_c 1(Reach(s,a,c) meets s')  P_W(c).
+
+Successors are stored as padded lists (never a dense |S| x |S| matrix). The remainder noise cell
+of unbounded W reaches every state, so *every* state s' has ``P_up >= P_W(rest)``: listed
+successors include it in ``upper``, and every unlisted state has the interval ``[0, upper_rest]``.
+
+Inner problem (``q_values``): the classic O(N log N) greedy (fill the lower bounds, then pour the
+remaining mass into states in increasing order of value up to their upper bounds), made exact in
+the presence of the unlisted states: one global sort of ``v`` per Bellman iteration gives every
+state's rank; with ``M(k)`` the mass placed after the ``k`` lowest-ranked states are filled up,
+a bisection over ``k`` finds where the mass reaches 1, and prefix sums of the sorted values give
+the unlisted states' contribution in O(1). Cost per iteration: O(N log N + R A K log N).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._pytree import pytree_dataclass, static_field
+from .base import AbstractionMixin, check_adversary
+from .clusters import cluster_members, max_lengths
+from .grid_clusters import GridClusters
+
+_ROWS_PER_CHUNK = 1 << 12
+
+
+@pytree_dataclass
+class IMDP(AbstractionMixin):
+    """Attributes:
+        successors: ``(R, A, K)`` int32 successor states (cells, sink ``N``), padded with ``N + 1``.
+        lower, upper: ``(R, A, K)`` float64 transition bounds of Lemma 1 (0 on padding).
+        upper_rest: scalar upper bound of every state not listed (P_W of the remainder cell).
+        rows: ``(R,)`` int32 state index of each row (the non-terminal cells).
+        labels: ``(N + 1,)`` int8 state labels.
+    """
+
+    successors: jax.Array
+    lower: jax.Array
+    upper: jax.Array
+    upper_rest: jax.Array
+    rows: jax.Array
+    labels: jax.Array
+    kind: str = static_field(default="imdp")
+
+    @classmethod
+    def from_clusters(cls, grid, clusters: GridClusters) -> "IMDP":
+        boxes = clusters.boxes
+        lengths = max_lengths(boxes)
+        sentinel = grid.num_cells + 1
+        prob = jnp.asarray(clusters.prob)
+        num_rows = int(clusters.rows.size)
+
+        def chunks():
+            for start in range(0, num_rows, _ROWS_PER_CHUNK):
+                part = jax.tree.map(lambda a: a[start:start + _ROWS_PER_CHUNK], boxes)
+                yield cluster_members(grid, part, lengths), part.single_cell | part.inside_sink
+
+        width = max(int(_count_successors(m, sentinel).max()) for m, _ in chunks())
+        pieces = [_interval_bounds(m, prob, single, sentinel, width) for m, single in chunks()]
+        succ, lower, upper = (jnp.concatenate(p) for p in zip(*pieces))
+        rest = jnp.asarray(clusters.prob_rest)
+        return cls(successors=succ, lower=lower, upper=jnp.where(succ < sentinel, upper + rest, 0.0),
+                   upper_rest=rest, rows=jnp.asarray(clusters.rows, jnp.int32),
+                   labels=jnp.asarray(grid.state_labels))
+
+    @property
+    def num_actions(self) -> int:
+        return int(self.successors.shape[1])
+
+    @property
+    def summands_per_backup(self) -> float:
+        # listed successors twice (lower-bound part and fill), plus the unlisted states' prefix sum
+        return float(2 * self.successors.shape[2] + self.num_states * float(self.upper_rest))
+
+    def restrict(self, actions) -> "IMDP":
+        """The single-action IMDP of a stationary strategy ``actions: (R,)``."""
+        pick = lambda a: jnp.take_along_axis(a, actions[:, None, None], axis=1)
+        return dataclasses.replace(self, successors=pick(self.successors), lower=pick(self.lower),
+                                   upper=pick(self.upper))
+
+    def q_values(self, v, adversary: str = "min", actions=None):
+        minimize = check_adversary(adversary)
+        succ, lower, upper = self.successors, self.lower, self.upper
+        if actions is not None:
+            pick = lambda a: jnp.take_along_axis(a, actions[:, None, None], axis=1)[:, 0]
+            succ, lower, upper = pick(succ), pick(lower), pick(upper)
+        w = v if minimize else -v  # max_gamma <gamma, v> = -min_gamma <gamma, -v>
+        value = interval_min(w, succ, lower, upper, self.upper_rest)
+        return value if minimize else -value
+
+    def __repr__(self):
+        r, a, k = self.successors.shape
+        return (f"IMDP(|S|={self.num_states}, rows={r}, |A|={a}, max successors={k}, "
+                f"memory={self.nbytes / 1e6:.2f} MB)")
+
+
+def interval_min(w, succ, lower, upper, upper_rest):
+    """``min sum_s' gamma(s') w(s')`` over ``gamma`` in the interval polytope, for every row.
+
+    Args:
+        w: ``(N+1,)`` values of all states.
+        succ, lower, upper: ``(..., K)`` listed successors (padding ``>= N+1``) and their bounds.
+        upper_rest: upper bound of every unlisted state (their lower bound is 0).
+    Returns:
+        ``(...)`` the minima.
+    """
+    n_states = w.shape[0]
+    order = jnp.argsort(w, stable=True)
+    rank = jnp.zeros(n_states, jnp.int32).at[order].set(jnp.arange(n_states, dtype=jnp.int32))
+    w_sorted = w[order]
+    prefix = jnp.concatenate([jnp.zeros(1, w.dtype), jnp.cumsum(w_sorted)])
+
+    listed = succ < n_states
+    r = jnp.where(listed, rank.at[succ].get(mode="fill", fill_value=n_states), n_states)
+    w_i = jnp.where(listed, w.at[succ].get(mode="fill", fill_value=0.0), 0.0)
+    lo = jnp.where(listed, lower, 0.0)
+    extra = jnp.where(listed, upper - lower - upper_rest, 0.0)  # capacity beyond an unlisted state's
+    base_mass = lo.sum(-1)
+
+    def mass(k):  # mass placed once the k lowest-ranked states are at their upper bounds
+        return base_mass + upper_rest * k + jnp.sum(jnp.where(r < k[..., None], extra, 0.0), axis=-1)
+
+    def bisect(_, bounds):
+        lo_k, hi_k = bounds
+        mid = (lo_k + hi_k) // 2
+        enough = mass(mid) >= 1.0
+        return jnp.where(enough, lo_k, mid + 1), jnp.where(enough, mid, hi_k)
+
+    steps = int(np.ceil(np.log2(n_states + 2))) + 1
+    zeros = jnp.zeros(base_mass.shape, jnp.int32)
+    _, k_star = jax.lax.fori_loop(0, steps, bisect, (zeros, zeros + n_states))
+    j = jnp.maximum(k_star - 1, 0)  # the state that is filled only partly
+    full = upper_rest * prefix[j] + jnp.sum(jnp.where(r < j[..., None], extra * w_i, 0.0), axis=-1)
+    partial = jnp.where(k_star > 0, (1.0 - mass(j)) * w_sorted[j], 0.0)
+    return (lo * w_i).sum(-1) + jnp.where(k_star > 0, full + partial, 0.0)
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _count_successors(members, sentinel):
+    ids = jnp.sort(members.reshape(members.shape[0], members.shape[1], -1), axis=-1)
+    first = jnp.concatenate([jnp.ones_like(ids[..., :1], bool), ids[..., 1:] != ids[..., :-1]], axis=-1)
+    return jnp.sum(first & (ids < sentinel), axis=-1)
+
+
+@functools.partial(jax.jit, static_argnums=(3, 4))
+def _interval_bounds(members, prob, single, sentinel, width):
+    """Lemma 1 bounds from cluster members ``(R, A, C, K)`` -> successor lists ``(R, A, width)``."""
+    r, a, c, k = members.shape
+    ids = members.reshape(r, a, c * k)
+    w_up = jnp.broadcast_to(prob[:, None], (c, k)).reshape(c * k)
+    w_lo = jnp.where(single[..., None], prob[:, None], 0.0)  # (R, A, C, 1): a single-member cluster
+    w_lo = jnp.broadcast_to(w_lo, (r, a, c, k)).reshape(r, a, c * k)
+    order = jnp.argsort(ids, axis=-1)
+    ids = jnp.take_along_axis(ids, order, axis=-1)
+    up = jnp.where(ids < sentinel, w_up[order], 0.0)
+    lo = jnp.where(ids < sentinel, jnp.take_along_axis(w_lo, order, axis=-1), 0.0)
+    first = jnp.concatenate([jnp.ones_like(ids[..., :1], bool), ids[..., 1:] != ids[..., :-1]], axis=-1)
+    slot = jnp.clip(jnp.cumsum(first, axis=-1) - 1, 0, width - 1)
+    rr, aa = jnp.meshgrid(jnp.arange(r), jnp.arange(a), indexing="ij")
+    rr, aa = rr[..., None], aa[..., None]
+    succ = jnp.full((r, a, width), sentinel, jnp.int32).at[rr, aa, slot].min(ids)
+    lower = jnp.zeros((r, a, width)).at[rr, aa, slot].add(lo)
+    upper = jnp.zeros((r, a, width)).at[rr, aa, slot].add(up)
+    return succ, lower, upper

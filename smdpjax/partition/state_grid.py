@@ -1,0 +1,202 @@
+"""The phi-conservative state partition: a uniform grid of boxes over the safe box plus a sink.
+
+Flat cell indices are C order over ``cells``; index ``num_cells`` is the sink state s_avoid
+(everything outside the grid box). Every grid cell carries a label:
+
+* ``REACH``: the cell lies inside a reach box (it is in S_reach, absorbing with value 1);
+* ``AVOID``: the cell overlaps an avoid box in a set of positive volume (absorbing, value 0);
+* ``NONTERMINAL``: every other cell (S_nt in the paper).
+
+Cells are closed boxes. A cell that only shares a face with an avoid box is not an avoid cell
+(the face has probability zero under any noise with a density); floating-point noise in the
+comparison of edges (0.4 vs 12/30) is absorbed by a tolerance of a few ulps.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import as_cell_counts, as_vector, check_low_high
+
+NONTERMINAL, REACH, AVOID = 0, 1, 2
+
+
+def _as_boxes(boxes, n: int, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """A sequence of ``(low, high)`` pairs as two arrays ``(k, n)``."""
+    if boxes is None:
+        boxes = ()
+    lows, highs = [], []
+    for i, box in enumerate(boxes):
+        try:
+            low, high = box
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{what}[{i}] must be a pair (low, high)") from exc
+        low = as_vector(low, f"{what}[{i}] low", dim=n)
+        high = as_vector(high, f"{what}[{i}] high", dim=n)
+        check_low_high(low, high, f"{what}[{i}]")
+        lows.append(low)
+        highs.append(high)
+    shape = (len(lows), n)
+    return (np.array(lows).reshape(shape), np.array(highs).reshape(shape))
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class StateGrid:
+    """Uniform grid over the safe box ``[low, high]`` with reach and avoid boxes.
+
+    Args:
+        low, high: ``(n,)`` corners of the grid box (the safe set before obstacles).
+        cells: cells per dimension, an int or ``(n,)`` positive ints.
+        reach: sequence of ``(low, high)`` boxes making up X_reach; must lie inside the grid box.
+        avoid: sequence of ``(low, high)`` boxes of obstacles inside the grid box (everything
+            outside the grid box is avoided anyway: it is the sink state).
+        periodic: ``(n,)`` bools (or None): dimension i wraps around with period
+            ``high[i] - low[i]`` (a heading in [0, 2 pi), say). Points are taken modulo the period
+            and reachable boxes that cross the seam meet the cells on both sides.
+    """
+
+    low: np.ndarray
+    high: np.ndarray
+    cells: np.ndarray
+    reach_boxes: tuple[np.ndarray, np.ndarray]
+    avoid_boxes: tuple[np.ndarray, np.ndarray]
+    periodic: np.ndarray
+    labels: np.ndarray
+
+    def __init__(self, low, high, cells, reach: Sequence = (), avoid: Sequence = (), periodic=None):
+        low = as_vector(low, "StateGrid low")
+        n = low.shape[0]
+        high = as_vector(high, "StateGrid high", dim=n)
+        check_low_high(low, high, "StateGrid")
+        cells = as_cell_counts(cells, n)
+        periodic = np.zeros(n, bool) if periodic is None else np.asarray(periodic, bool).reshape(-1)
+        if periodic.shape != (n,):
+            raise ValueError(f"periodic must have length {n}, got {periodic.shape}")
+        reach_boxes = _as_boxes(reach, n, "reach")
+        avoid_boxes = _as_boxes(avoid, n, "avoid")
+        tol = 16 * np.finfo(np.float64).eps * np.maximum(np.abs(low), np.abs(high)).max()
+        r_lo, r_hi = reach_boxes
+        outside = np.any((r_lo < low - tol) | (r_hi > high + tol), axis=1)
+        if np.any(outside):
+            i = int(np.flatnonzero(outside)[0])
+            raise ValueError(f"reach box {i} ({r_lo[i].tolist()}, {r_hi[i].tolist()}) is not inside the safe "
+                             f"grid box ({low.tolist()}, {high.tolist()}): X_reach must be a subset of X_safe")
+        a_lo, a_hi = avoid_boxes
+        overlap = np.all((r_lo[:, None] < a_hi[None] - tol) & (r_hi[:, None] > a_lo[None] + tol), axis=2)
+        if np.any(overlap):
+            i, j = map(int, np.argwhere(overlap)[0])
+            raise ValueError(f"reach box {i} overlaps avoid box {j}: X_reach must be a subset of X_safe")
+        object.__setattr__(self, "low", low)
+        object.__setattr__(self, "high", high)
+        object.__setattr__(self, "cells", cells)
+        object.__setattr__(self, "reach_boxes", reach_boxes)
+        object.__setattr__(self, "avoid_boxes", avoid_boxes)
+        object.__setattr__(self, "periodic", periodic)
+        object.__setattr__(self, "labels", self._compute_labels(tol))
+
+    # -- geometry ---------------------------------------------------------------------------
+    @property
+    def n(self) -> int:
+        return int(self.low.shape[0])
+
+    @property
+    def num_cells(self) -> int:
+        """Number of grid cells; the sink has index ``num_cells``."""
+        return int(np.prod(self.cells))
+
+    @property
+    def num_states(self) -> int:
+        """|S| as the paper counts it: grid cells plus the sink."""
+        return self.num_cells + 1
+
+    @property
+    def sink(self) -> int:
+        return self.num_cells
+
+    @property
+    def width(self) -> np.ndarray:
+        """``(n,)`` cell widths."""
+        return (self.high - self.low) / self.cells
+
+    def cell_bounds(self, index):
+        """Boxes of flat cell indices ``index: (...)``: returns ``(low, high)``, each ``(..., n)``."""
+        multi = jnp.stack(jnp.unravel_index(jnp.asarray(index), tuple(self.cells.tolist())), axis=-1)
+        lo = self.low + multi * self.width
+        hi = jnp.where(multi + 1 == self.cells, self.high, self.low + (multi + 1) * self.width)
+        return lo, hi
+
+    def wrap(self, x):
+        """Points ``(..., n)`` with periodic coordinates brought into ``[low, high)``."""
+        x = jnp.asarray(x)
+        period = self.high - self.low
+        wrapped = self.low + jnp.mod(x - self.low, period)
+        return jnp.where(self.periodic, wrapped, x)
+
+    def locate(self, x):
+        """Flat cell index of each point ``x: (..., n)``, -1 outside the grid box (or NaN).
+
+        Returns ``(...)`` int32. A point on a face shared by two cells gets one of them; a point on
+        the outer boundary belongs to the grid.
+        """
+        x = self.wrap(x)
+        inside = jnp.all((x >= self.low) & (x <= self.high), axis=-1)
+        multi = jnp.floor((x - self.low) / self.width).astype(jnp.int32)
+        multi = jnp.clip(multi, 0, jnp.asarray(self.cells - 1, jnp.int32))
+        flat = jnp.ravel_multi_index(tuple(jnp.moveaxis(multi, -1, 0)), tuple(self.cells.tolist()), mode="clip")
+        return jnp.where(inside, flat, -1).astype(jnp.int32)
+
+    def cell_centers(self, index=None):
+        """Centres ``(k, n)`` of the given flat cells (all cells by default)."""
+        index = np.arange(self.num_cells) if index is None else index
+        lo, hi = self.cell_bounds(index)
+        return (lo + hi) / 2
+
+    # -- specification ----------------------------------------------------------------------
+    def _compute_labels(self, tol: float) -> np.ndarray:
+        lo, hi = (np.asarray(b) for b in self.cell_bounds(np.arange(self.num_cells)))
+        labels = np.full(self.num_cells, NONTERMINAL, np.int8)
+        r_lo, r_hi = self.reach_boxes
+        inside_reach = np.all((lo[:, None] >= r_lo[None] - tol) & (hi[:, None] <= r_hi[None] + tol), axis=2)
+        labels[np.any(inside_reach, axis=1)] = REACH
+        a_lo, a_hi = self.avoid_boxes
+        meets_avoid = np.all((lo[:, None] < a_hi[None] - tol) & (hi[:, None] > a_lo[None] + tol), axis=2)
+        labels[np.any(meets_avoid, axis=1)] = AVOID
+        return labels
+
+    @property
+    def state_labels(self) -> np.ndarray:
+        """``(num_cells + 1,)`` labels including the sink (``AVOID``)."""
+        return np.append(self.labels, np.int8(AVOID))
+
+    @property
+    def nonterminal(self) -> np.ndarray:
+        """Flat indices of S_nt (safe, not reach), ascending."""
+        return np.flatnonzero(self.labels == NONTERMINAL)
+
+    def in_reach(self, x):
+        """Whether points ``x: (..., n)`` lie in X_reach (the true sets, not the cells)."""
+        return self._in_boxes(self.wrap(x), self.reach_boxes)
+
+    def in_avoid(self, x):
+        """Whether points ``x: (..., n)`` lie in X_avoid: outside the grid box or in an avoid box."""
+        x = self.wrap(x)
+        outside = ~jnp.all((x >= self.low) & (x <= self.high), axis=-1) | jnp.any(jnp.isnan(x), axis=-1)
+        return outside | self._in_boxes(x, self.avoid_boxes)
+
+    @staticmethod
+    def _in_boxes(x, boxes):
+        lo, hi = boxes
+        if lo.shape[0] == 0:
+            return jnp.zeros(x.shape[:-1], bool)
+        return jnp.any(jnp.all((x[..., None, :] >= lo) & (x[..., None, :] <= hi), axis=-1), axis=-1)
+
+    def __repr__(self):
+        counts = np.bincount(self.labels, minlength=3)
+        per = "x".join(map(str, self.cells.tolist()))
+        wrap = f", periodic={np.flatnonzero(self.periodic).tolist()}" if self.periodic.any() else ""
+        return (f"StateGrid(n={self.n}, cells={per}, |S|={self.num_states} "
+                f"(nonterminal={counts[NONTERMINAL]}, reach={counts[REACH]}, avoid={counts[AVOID]} + sink){wrap})")

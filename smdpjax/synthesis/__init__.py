@@ -1,0 +1,111 @@
+"""Robust controller synthesis and verification on any abstraction class."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+
+from ..abstraction.base import AbstractionMixin
+from ..partition import NONTERMINAL
+from . import value_iteration
+from .solution import Solution
+
+__all__ = ["synthesize", "verify", "Solution"]
+
+
+def _check(abstraction, horizon, tol, objective):
+    if not isinstance(abstraction, AbstractionMixin):
+        raise TypeError(f"expected an abstraction from smdpjax.abstract, got {type(abstraction).__name__}")
+    if horizon is not None and (int(horizon) != horizon or horizon < 0):
+        raise ValueError(f"horizon must be None or a non-negative integer, got {horizon}")
+    if not tol > 0:
+        raise ValueError(f"tol must be > 0, got {tol}")
+    if objective == "safety" and horizon is None:
+        raise ValueError("safety is checked over a finite horizon: pass horizon=T")
+    return abstraction.initial_values(objective)
+
+
+def _finish(abstraction, lower, upper, policy_rows, lower_opt, iterations, eval_iterations,
+            converged, change, horizon, objective):
+    rows = abstraction.rows
+    allowance = abstraction.rounding_per_backup() * (int(iterations) + int(eval_iterations))
+    nonterminal = jnp.asarray(abstraction.labels) == NONTERMINAL
+    widen = lambda v, sign: jnp.where(nonterminal, jnp.clip(v + sign * allowance, 0.0, 1.0), v)
+    n_states = abstraction.num_states
+    if policy_rows.ndim == 1:
+        policy = jnp.zeros(n_states, jnp.int32).at[rows].set(policy_rows)
+    else:
+        policy = jnp.zeros((policy_rows.shape[0], n_states), jnp.int32).at[:, rows].set(policy_rows)
+    return Solution(lower=widen(lower, -1), upper=widen(upper, +1), policy=policy,
+                    lower_optimal=widen(lower_opt, -1), iterations=int(iterations),
+                    evaluation_iterations=int(eval_iterations), converged=bool(converged),
+                    upper_change=float(change), rounding_allowance=float(allowance), horizon=horizon,
+                    objective=objective)
+
+
+def synthesize(abstraction, horizon: int | None = None, tol: float = 1e-6, *, objective: str = "reach_avoid",
+               max_iterations: int = 100_000) -> Solution:
+    """Robust dynamic programming: p_low with an optimal strategy, then p_up under it.
+
+    Args:
+        abstraction: an ``IMDP``/``SMDP`` (any class from ``smdpjax.abstract``).
+        horizon: ``None`` iterates to convergence (unbounded reach-avoid); an integer T runs
+            exactly T backups and returns a time-dependent strategy ``(T, N+1)``.
+        tol: stop when an iteration changes no value by more than ``tol``. Stopping early only
+            loosens ``lower`` (iterates rise monotonically), but ``upper`` under-estimates p_up
+            by up to the remaining change (reported as ``upper_change``).
+        objective: ``"reach_avoid"`` (p^0 = 1 on reach cells) or ``"safety"`` (stay in the safe
+            cells for ``horizon`` steps; p^0 = 1 on every safe cell).
+        max_iterations: cap on each loop for unbounded horizons.
+
+    Returns:
+        ``Solution``. ``lower`` is the certified value of the returned strategy, evaluated
+        separately from the optimization so that a tie-broken strategy can never claim more
+        than it achieves.
+    """
+    v0 = _check(abstraction, horizon, tol, objective)
+    if horizon is not None:
+        lo, up, policy = value_iteration.finite_horizon(abstraction, v0, int(horizon))
+        return _finish(abstraction, lo, up, policy, lo, horizon, 0, True, 0.0, int(horizon), objective)
+    lo_opt, policy, k, delta = value_iteration.optimize_lower(abstraction, v0, tol, max_iterations)
+    lo, up, k_eval, (converged, change) = _evaluate_both(abstraction, v0, policy, tol, max_iterations)
+    converged = converged and bool(delta <= tol)
+    return _finish(abstraction, lo, up, policy, lo_opt, k, k_eval, converged, change, None, objective)
+
+
+def verify(abstraction, policy, horizon: int | None = None, tol: float = 1e-6, *,
+           objective: str = "reach_avoid", max_iterations: int = 100_000) -> Solution:
+    """Lower and upper bounds of a given controller (no optimization).
+
+    Args:
+        policy: action index per grid cell, ``(N,)`` or ``(N+1,)`` (e.g. a look-up table), or
+            ``(T, N)``/``(T, N+1)`` per time step when ``horizon=T``.
+        Other arguments as in ``synthesize``.
+    """
+    v0 = _check(abstraction, horizon, tol, objective)
+    policy = np.asarray(policy)
+    n = abstraction.num_states
+    if not np.issubdtype(policy.dtype, np.integer):
+        raise TypeError(f"policy must hold integer action indices, got dtype {policy.dtype}")
+    if policy.shape[-1] not in (n - 1, n) or policy.ndim not in (1, 2):
+        raise ValueError(f"policy must have shape (N,) or (N+1,) with N={n - 1} cells (or (T, .)), got {policy.shape}")
+    if policy.ndim == 2 and (horizon is None or policy.shape[0] != horizon):
+        raise ValueError(f"a time-dependent policy of shape {policy.shape} needs horizon={policy.shape[0]}")
+    if np.any(policy < 0) or np.any(policy >= abstraction.num_actions):
+        raise ValueError(f"policy entries must lie in [0, {abstraction.num_actions})")
+    rows_policy = jnp.asarray(policy[..., np.asarray(abstraction.rows)], jnp.int32)
+    if horizon is not None:
+        lo, up, pol = value_iteration.finite_horizon(abstraction, v0, int(horizon), rows_policy)
+        return _finish(abstraction, lo, up, pol, lo, horizon, 0, True, 0.0, int(horizon), objective)
+    lo, up, k, (converged, change) = _evaluate_both(abstraction, v0, rows_policy, tol, max_iterations)
+    return _finish(abstraction, lo, up, rows_policy, lo, 0, k, converged, change, None, objective)
+
+
+def _evaluate_both(abstraction, v0, policy_rows, tol, max_iterations):
+    """Pessimistic value of the strategy from p^0, then its optimistic value from the pessimistic one."""
+    fixed = abstraction.restrict(policy_rows)
+    lo, k_lo, d_lo = value_iteration.evaluate(fixed, v0, "min", tol, max_iterations)
+    up, k_up, d_up = value_iteration.evaluate(fixed, lo, "max", tol, max_iterations)
+    converged = bool(d_lo <= tol) and bool(d_up <= tol)
+    return lo, up, int(k_lo) + int(k_up), (converged, float(d_up))
+

@@ -1,0 +1,105 @@
+"""Robust dynamic programming (the paper's RDP, Proposition 1) for any abstraction class.
+
+The abstraction supplies the inner problem (``q_values``); this module supplies the outer
+structure, all of it inside ``lax.while_loop`` / ``lax.scan`` under ``jit``:
+
+* ``optimize_lower``: p_low^{k+1}(s) = max_a min_{gamma in Gamma_{s,a}} sum gamma(s') p_low^k(s'),
+  iterated from p^0 = 1_{S_reach}. Iterates increase monotonically to p_low, so every iterate is a
+  valid lower bound. The stationary strategy keeps its previous action unless another action is
+  strictly better: an action is then only chosen when it raised the value, which rules out
+  strategies that idle forever in a loop of equal values.
+* ``evaluate``: the lower (adversary minimizes) or upper (adversary maximizes) value of a fixed
+  strategy. The lower one, iterated from p^0, certifies the synthesized strategy (it is what the
+  controller achieves at worst). The upper one starts from that lower value, which lies below
+  it, and so needs fewer iterations than from p^0; it is exact only at convergence (iterates
+  from below under-estimate it).
+* ``finite_horizon``: exactly T backups, a time-dependent strategy, lower and upper together.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+
+
+def _set_rows(v, rows, values):
+    return v.at[rows].set(values)
+
+
+@functools.partial(jax.jit, static_argnames=("max_iterations",))
+def optimize_lower(abstraction, v0, tol, max_iterations: int):
+    """Returns ``(p_low (N+1,), policy over rows (R,), iterations, last change)``."""
+    rows = abstraction.rows
+
+    def body(state):
+        k, v, policy, _ = state
+        q = abstraction.q_values(v, "min")  # (R, A)
+        best = q.max(axis=1)
+        kept = jnp.take_along_axis(q, policy[:, None], axis=1)[:, 0]
+        policy = jnp.where(kept >= best, policy, jnp.argmax(q, axis=1).astype(jnp.int32))
+        v_new = _set_rows(v, rows, best)
+        return k + 1, v_new, policy, jnp.max(jnp.abs(v_new - v))
+
+    def cond(state):
+        k, _, _, delta = state
+        return (delta > tol) & (k < max_iterations)
+
+    init = (jnp.int32(0), v0, jnp.zeros(rows.shape, jnp.int32), jnp.asarray(jnp.inf, v0.dtype))
+    k, v, policy, delta = jax.lax.while_loop(cond, body, init)
+    return v, policy, k, delta
+
+
+@functools.partial(jax.jit, static_argnames=("adversary", "max_iterations"))
+def evaluate(abstraction, v0, adversary: str, tol, max_iterations: int):
+    """Value of a single-action abstraction (a strategy already applied, see ``restrict``) against
+    a minimizing or maximizing adversary, iterated from ``v0``: ``(values, iterations, change)``.
+
+    ``v0`` must lie below the least fixed point (e.g. p^0, or the pessimistic value when
+    computing the optimistic one): iterates then rise monotonically to it.
+    """
+    rows = abstraction.rows
+
+    def body(state):
+        k, v, _ = state
+        v_new = _set_rows(v, rows, abstraction.q_values(v, adversary)[:, 0])
+        return k + 1, v_new, jnp.max(jnp.abs(v_new - v))
+
+    def cond(state):
+        k, _, delta = state
+        return (delta > tol) & (k < max_iterations)
+
+    k, v, delta = jax.lax.while_loop(cond, body, (jnp.int32(0), v0, jnp.asarray(jnp.inf, v0.dtype)))
+    return v, k, delta
+
+
+@functools.partial(jax.jit, static_argnames=("horizon",))
+def finite_horizon(abstraction, v0, horizon: int, policy=None):
+    """T = ``horizon`` backups. ``policy``: ``None`` (optimized, time-dependent), ``(R,)``
+    (stationary) or ``(T, R)`` (``policy[t]`` is the action at time t).
+
+    Returns ``(lower, upper, policy (T, R))`` where ``policy[t]`` is the action at time t
+    (``t = 0`` is the first step, i.e. the last backup).
+    """
+    rows = abstraction.rows
+    if policy is None:
+        steps = None
+    elif policy.ndim == 1:
+        steps = jnp.broadcast_to(policy, (horizon, *policy.shape))
+    else:
+        steps = policy[::-1]  # backups run from the last time step to the first
+
+    def step(carry, act):
+        lo, up = carry
+        if act is None:
+            q = abstraction.q_values(lo, "min")
+            act = jnp.argmax(q, axis=1).astype(jnp.int32)
+            lo_rows = q.max(axis=1)
+        else:
+            lo_rows = abstraction.q_values(lo, "min", act)
+        up_rows = abstraction.q_values(up, "max", act)
+        return (_set_rows(lo, rows, lo_rows), _set_rows(up, rows, up_rows)), act
+
+    (lo, up), actions = jax.lax.scan(step, (v0, v0), steps, length=horizon)
+    return lo, up, actions[::-1]
