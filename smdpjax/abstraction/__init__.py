@@ -13,8 +13,9 @@ from .clusters import IndexBoxes, cluster_members, index_boxes
 from .grid_clusters import GridClusters, compute_grid_clusters
 from .imdp import IMDP, interval_min
 from .smdp import SMDP
+from .twolayer import TwoLayerIMDP
 
-_BUILDERS = {"imdp": IMDP, "smdp": SMDP}
+_BUILDERS = {"imdp": IMDP, "2imdp": TwoLayerIMDP, "smdp": SMDP}
 KINDS = ("imdp", "2imdp", "mimdp", "smdp")
 
 
@@ -35,12 +36,13 @@ def abstract(system: System, state_grid: StateGrid, noise_grid: NoiseGrid, kind:
         system: the stochastic system.
         state_grid: the phi-conservative state partition S (with reach/avoid labels).
         noise_grid: the partition C of W.
-        kind: ``"imdp"``, ``"smdp"`` (and ``"2imdp"``, ``"mimdp"`` where available).
+        kind: ``"imdp"``, ``"2imdp"`` (option ``block``: coarse block shape in cells), ``"smdp"``
+            (and ``"mimdp"`` where available).
         method: reachable-set enclosure: ``"natural"``, ``"centered"`` or ``"both"``.
         progress: show a progress bar over the reachable-set chunks.
 
     Returns:
-        An ``IMDP`` or ``SMDP`` PyTree, ready for ``smdpjax.synthesize``.
+        An abstraction PyTree (``IMDP``, ``TwoLayerIMDP``, ``SMDP``), ready for ``smdpjax.synthesize``.
     """
     if kind not in KINDS:
         raise ValueError(f"unknown abstraction kind {kind!r}; expected one of {KINDS}")
@@ -50,5 +52,5 @@ def abstract(system: System, state_grid: StateGrid, noise_grid: NoiseGrid, kind:
     return build(kind, state_grid, clusters, **options)
 
 
-__all__ = ["abstract", "build", "KINDS", "IMDP", "SMDP", "AbstractionMixin", "GridClusters", "IndexBoxes",
+__all__ = ["abstract", "build", "KINDS", "IMDP", "SMDP", "TwoLayerIMDP", "AbstractionMixin", "GridClusters", "IndexBoxes",
            "compute_grid_clusters", "cluster_members", "index_boxes", "interval_min"]

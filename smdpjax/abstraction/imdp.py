@@ -56,20 +56,11 @@ class IMDP(AbstractionMixin):
     def from_clusters(cls, grid, clusters: GridClusters) -> "IMDP":
         boxes = clusters.boxes
         lengths = max_lengths(boxes)
-        sentinel = grid.num_cells + 1
-        prob = jnp.asarray(clusters.prob)
-        num_rows = int(clusters.rows.size)
-
-        def chunks():
-            for start in range(0, num_rows, _ROWS_PER_CHUNK):
-                part = jax.tree.map(lambda a: a[start:start + _ROWS_PER_CHUNK], boxes)
-                yield cluster_members(grid, part, lengths), part.single_cell | part.inside_sink
-
-        width = max(int(_count_successors(m, sentinel).max()) for m, _ in chunks())
-        pieces = [_interval_bounds(m, prob, single, sentinel, width) for m, single in chunks()]
-        succ, lower, upper = (jnp.concatenate(p) for p in zip(*pieces))
+        chunks = ((cluster_members(grid, part, lengths), part.single_cell | part.inside_sink)
+                  for part in row_chunks(boxes))
+        succ, lower, upper = lemma1_bounds(chunks, clusters.prob, grid.num_cells + 1)
         rest = jnp.asarray(clusters.prob_rest)
-        return cls(successors=succ, lower=lower, upper=jnp.where(succ < sentinel, upper + rest, 0.0),
+        return cls(successors=succ, lower=lower, upper=jnp.where(succ <= grid.num_cells, upper + rest, 0.0),
                    upper_rest=rest, rows=jnp.asarray(clusters.rows, jnp.int32),
                    labels=jnp.asarray(grid.state_labels))
 
@@ -145,8 +136,30 @@ def interval_min(w, succ, lower, upper, upper_rest):
     return (lo * w_i).sum(-1) + jnp.where(k_star > 0, full + partial, 0.0)
 
 
+def row_chunks(tree, size: int = _ROWS_PER_CHUNK):
+    """Slices of a PyTree of row-major arrays, ``size`` rows at a time (bounds peak memory)."""
+    rows = jax.tree_util.tree_leaves(tree)[0].shape[0]
+    for start in range(0, rows, size):
+        yield jax.tree.map(lambda a: a[start:start + size], tree)
+
+
+def lemma1_bounds(chunks, prob, sentinel: int):
+    """Lemma 1 for every region a cluster can meet, from chunks of ``(ids (R, A, C, K), single (R, A, C))``.
+
+    ``ids[r, a, c]`` lists the regions (states, or coarse blocks) that cluster c meets, each at
+    most once, padded with ``sentinel``; ``single`` marks clusters inside one region. Returns
+    ``(regions, lower, upper)``, each ``(R, A, W)``: per row the distinct regions met, with
+    ``lower = sum_c P(c) 1(cluster c inside region)`` and ``upper = sum_c P(c) 1(c meets region)``.
+    """
+    chunks = list(chunks)
+    width = max(int(_count_distinct(ids, sentinel).max()) for ids, _ in chunks)
+    prob = jnp.asarray(prob)
+    pieces = [_interval_bounds(ids, prob, single, sentinel, width) for ids, single in chunks]
+    return tuple(jnp.concatenate(p) for p in zip(*pieces))
+
+
 @functools.partial(jax.jit, static_argnums=1)
-def _count_successors(members, sentinel):
+def _count_distinct(members, sentinel):
     ids = jnp.sort(members.reshape(members.shape[0], members.shape[1], -1), axis=-1)
     first = jnp.concatenate([jnp.ones_like(ids[..., :1], bool), ids[..., 1:] != ids[..., :-1]], axis=-1)
     return jnp.sum(first & (ids < sentinel), axis=-1)
@@ -154,11 +167,11 @@ def _count_successors(members, sentinel):
 
 @functools.partial(jax.jit, static_argnums=(3, 4))
 def _interval_bounds(members, prob, single, sentinel, width):
-    """Lemma 1 bounds from cluster members ``(R, A, C, K)`` -> successor lists ``(R, A, width)``."""
+    """Lemma 1 bounds from cluster members ``(R, A, C, K)`` -> region lists ``(R, A, width)``."""
     r, a, c, k = members.shape
     ids = members.reshape(r, a, c * k)
     w_up = jnp.broadcast_to(prob[:, None], (c, k)).reshape(c * k)
-    w_lo = jnp.where(single[..., None], prob[:, None], 0.0)  # (R, A, C, 1): a single-member cluster
+    w_lo = jnp.where(single[..., None], prob[:, None], 0.0)  # (R, A, C, 1): a single-region cluster
     w_lo = jnp.broadcast_to(w_lo, (r, a, c, k)).reshape(r, a, c * k)
     order = jnp.argsort(ids, axis=-1)
     ids = jnp.take_along_axis(ids, order, axis=-1)

@@ -1,0 +1,118 @@
+"""2I-MDP: block layout, Lemma 1 block bounds, and the tailored solver against an LP."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.optimize import linprog
+
+import smdpjax as sj
+from smdpjax.abstraction import compute_grid_clusters
+from smdpjax.abstraction.twolayer import TwoLayerIMDP, block_layout
+
+
+def drift(x, u, w):
+    return x + 0.1 * (jnp.array([jnp.cos(u[0]), jnp.sin(u[0])]) + w)
+
+
+def bounded(x, u, w):
+    return jnp.array([x[0] + 0.1 * u[0] + 0.08 * w[0] * (1 + x[1]), 0.9 * x[1] + 0.1 * jnp.sin(3 * x[0]) + 0.06 * w[1]])
+
+
+PROBLEMS = {
+    "gaussian": (sj.System(drift, actions=(np.arange(4) * np.pi / 2)[:, None], noise=sj.Gaussian([0, 0], [0.6, 0.6])),
+                 sj.StateGrid([0, 0], [1, 1], 8, reach=[([0.75, 0.75], [1, 1])], avoid=[([0.375, 0.25], [0.5, 0.625])]),
+                 sj.NoiseGrid.ball([0, 0], 1.2, 3)),
+    "uniform": (sj.System(bounded, actions=[[-1.0], [1.0]], noise=sj.Uniform([-1, -1], [1, 1])),
+                sj.StateGrid([0, 0], [1, 1], [7, 6], reach=[([0.0, 0.0], [2 / 7, 1 / 3])]),
+                sj.NoiseGrid.box([-1, -1], [1, 1], [3, 2])),
+}
+
+
+def dense_polytope(tl, row, action, grid):
+    """All constraints of one (s, a) over the N+1 states, for the LP."""
+    n = grid.num_states
+    cells_of = np.concatenate([np.asarray(tl.cells_of), np.full((1, tl.cells_of.shape[1]), n)])  # padding block
+    cells = cells_of[np.asarray(tl.blocks)[row, action]]
+    lo, up = np.zeros(n), np.full(n, float(tl.upper_rest))
+    valid = cells < n
+    lo[cells[valid]] = np.asarray(tl.lower)[row, action][valid]
+    up[cells[valid]] = np.asarray(tl.upper)[row, action][valid]
+    a_ub, b_ub = [], []
+    met = set()
+    for t, block in enumerate(np.asarray(tl.blocks)[row, action]):
+        if block >= tl.cells_of.shape[0]:
+            continue
+        met.add(int(block))
+        members = np.asarray(tl.cells_of)[block]
+        ind = np.zeros(n)
+        ind[members[members < n]] = 1
+        a_ub += [ind, -ind]
+        b_ub += [float(tl.block_upper[row, action, t]), -float(tl.block_lower[row, action, t])]
+    for block, members in enumerate(np.asarray(tl.cells_of)):
+        if block not in met:  # only the remainder cell reaches it
+            ind = np.zeros(n)
+            ind[members[members < n]] = 1
+            a_ub.append(ind)
+            b_ub.append(float(tl.upper_rest))
+    return lo, up, np.array(a_ub), np.array(b_ub)
+
+
+def lp(values, lo, up, a_ub, b_ub):
+    res = linprog(values, A_ub=a_ub, b_ub=b_ub, A_eq=np.ones((1, values.size)), b_eq=[1.0],
+                  bounds=list(zip(lo, up)), method="highs")
+    assert res.status == 0, res.message
+    return res.fun
+
+
+def test_block_layout_partitions_the_grid():
+    grid = sj.StateGrid([0, 0], [1, 1], [5, 4])
+    block_of, cells_of = block_layout(grid, (2, 3))
+    assert cells_of.shape == (3 * 2 + 1, 6)
+    listed = cells_of[cells_of <= grid.sink]
+    assert sorted(listed.tolist()) == list(range(grid.num_states))  # every state in exactly one block
+    for b, cells in enumerate(cells_of):
+        assert np.all(block_of[cells[cells <= grid.sink]] == b)
+
+
+@pytest.mark.parametrize("name", sorted(PROBLEMS))
+def test_tailored_solver_equals_lp(name):
+    system, grid, noise = PROBLEMS[name]
+    tl = TwoLayerIMDP.from_clusters(grid, compute_grid_clusters(system, grid, noise), block=(2, 2))
+    rng = np.random.default_rng(0)
+    solve = jax.jit(lambda v, adv: tl.q_values(v, adv), static_argnums=1)
+    checked = 0
+    for trial in range(6):
+        v = rng.uniform(0, 1, grid.num_states) if trial % 3 else rng.choice([0.0, 0.5, 1.0], grid.num_states)
+        v[-1] = 0.0
+        q_min = np.asarray(solve(jnp.asarray(v), "min"))
+        q_max = np.asarray(solve(jnp.asarray(v), "max"))
+        for row in range(tl.num_rows):
+            for a in range(tl.num_actions):
+                poly = dense_polytope(tl, row, a, grid)
+                assert q_min[row, a] == pytest.approx(lp(v, *poly), abs=1e-9)
+                assert q_max[row, a] == pytest.approx(-lp(-v, *poly), abs=1e-9)
+                checked += 2
+    assert checked >= 900
+
+
+def test_two_layer_lies_between_imdp_and_smdp():
+    system, grid, noise = PROBLEMS["gaussian"]
+    clusters = compute_grid_clusters(system, grid, noise)
+    tl = TwoLayerIMDP.from_clusters(grid, clusters, block=(2, 2))
+    imdp = sj.IMDP.from_clusters(grid, clusters)
+    rng = np.random.default_rng(1)
+    for _ in range(5):
+        v = jnp.asarray(rng.uniform(0, 1, grid.num_states)).at[-1].set(0.0)
+        assert np.all(np.asarray(tl.q_values(v, "min")) >= np.asarray(imdp.q_values(v, "min")) - 1e-12)
+        assert np.all(np.asarray(tl.q_values(v, "max")) <= np.asarray(imdp.q_values(v, "max")) + 1e-12)
+
+
+def test_default_block_and_abstract_option():
+    system, grid, noise = PROBLEMS["uniform"]
+    tl = sj.abstract(system, grid, noise, "2imdp")
+    assert all(b >= 2 for b in tl.block_shape)
+    tl3 = sj.abstract(system, grid, noise, "2imdp", block=3)
+    assert tl3.block_shape == (3, 3)
+    with pytest.raises(ValueError, match="positive"):
+        sj.abstract(system, grid, noise, "2imdp", block=0)
