@@ -48,7 +48,7 @@ def synthesize(abstraction, horizon: int | None = None, tol: float = 1e-6, *, ob
     """Robust dynamic programming: p_low with an optimal strategy, then p_up under it.
 
     Args:
-        abstraction: an ``IMDP``/``SMDP`` (any class from ``smdpjax.abstract``).
+        abstraction: any class from ``smdpjax.abstract`` (IMDP, 2I-MDP, MI-MDP, SMDP).
         horizon: ``None`` iterates to convergence (unbounded reach-avoid); an integer T runs
             exactly T backups and returns a time-dependent strategy ``(T, N+1)``.
         tol: stop when an iteration changes no value by more than ``tol``. Stopping early only
@@ -62,15 +62,21 @@ def synthesize(abstraction, horizon: int | None = None, tol: float = 1e-6, *, ob
         ``Solution``. ``lower`` is the certified value of the returned strategy, evaluated
         separately from the optimization so that a tie-broken strategy can never claim more
         than it achieves.
+
+    An abstraction with a ``relaxation`` attribute (an abstraction of the same system whose
+    ambiguity sets contain its own, e.g. the IMDP inside an MI-MDP) is solved warm: each loop
+    starts from the relaxation's value, which lies below the abstraction's own (smaller
+    ambiguity sets, higher robust values) and is cheap to compute. Iterates are still valid
+    lower bounds, and far fewer expensive backups are needed.
     """
     v0 = _check(abstraction, horizon, tol, objective)
     if horizon is not None:
         lo, up, policy = value_iteration.finite_horizon(abstraction, v0, int(horizon))
         return _finish(abstraction, lo, up, policy, lo, horizon, 0, True, 0.0, int(horizon), objective)
-    lo_opt, policy, k, delta = value_iteration.optimize_lower(abstraction, v0, tol, max_iterations)
-    lo, up, k_eval, (converged, change) = _evaluate_both(abstraction, v0, policy, tol, max_iterations)
-    converged = converged and bool(delta <= tol)
-    return _finish(abstraction, lo, up, policy, lo_opt, k, k_eval, converged, change, None, objective)
+    lo_opt, policy, k, converged = _optimize(abstraction, v0, tol, max_iterations)
+    lo, up, k_eval, (converged_eval, change) = _evaluate_both(abstraction, v0, policy, tol, max_iterations)
+    return _finish(abstraction, lo, up, policy, lo_opt, k, k_eval, converged and converged_eval, change, None,
+                   objective)
 
 
 def verify(abstraction, policy, horizon: int | None = None, tol: float = 1e-6, *,
@@ -101,11 +107,29 @@ def verify(abstraction, policy, horizon: int | None = None, tol: float = 1e-6, *
     return _finish(abstraction, lo, up, rows_policy, lo, 0, k, converged, change, None, objective)
 
 
-def _evaluate_both(abstraction, v0, policy_rows, tol, max_iterations):
-    """Pessimistic value of the strategy from p^0, then its optimistic value from the pessimistic one."""
-    fixed = abstraction.restrict(policy_rows)
-    lo, k_lo, d_lo = value_iteration.evaluate(fixed, v0, "min", tol, max_iterations)
-    up, k_up, d_up = value_iteration.evaluate(fixed, lo, "max", tol, max_iterations)
-    converged = bool(d_lo <= tol) and bool(d_up <= tol)
-    return lo, up, int(k_lo) + int(k_up), (converged, float(d_up))
+def _optimize(abstraction, v0, tol, max_iterations):
+    """Optimal lower bound and strategy, warm-started from a relaxation where there is one."""
+    relaxation = getattr(abstraction, "relaxation", None)
+    start, policy0, k0 = v0, None, 0
+    if relaxation is not None:
+        start, policy0, k0, _ = _optimize(relaxation, v0, tol, max_iterations)
+    lo, policy, k, delta = value_iteration.optimize_lower(abstraction, start, tol, max_iterations, policy0)
+    return lo, policy, int(k) + int(k0), bool(delta <= tol)
 
+
+def _pessimistic(abstraction, v0, policy_rows, tol, max_iterations):
+    """The strategy's value against the minimizing adversary, from p^0 or from a relaxation's."""
+    relaxation = getattr(abstraction, "relaxation", None)
+    start, k0 = v0, 0
+    if relaxation is not None:
+        start, k0, _ = _pessimistic(relaxation, v0, policy_rows, tol, max_iterations)
+    lo, k, delta = value_iteration.evaluate(abstraction.restrict(policy_rows), start, "min", tol, max_iterations)
+    return lo, int(k) + k0, bool(delta <= tol)
+
+
+def _evaluate_both(abstraction, v0, policy_rows, tol, max_iterations):
+    """Pessimistic value of the strategy, then its optimistic value starting from the pessimistic one."""
+    lo, k_lo, converged_lo = _pessimistic(abstraction, v0, policy_rows, tol, max_iterations)
+    up, k_up, d_up = value_iteration.evaluate(abstraction.restrict(policy_rows), lo, "max", tol, max_iterations)
+    converged = converged_lo and bool(d_up <= tol)
+    return lo, up, k_lo + int(k_up), (converged, float(d_up))

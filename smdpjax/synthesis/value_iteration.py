@@ -29,8 +29,12 @@ def _set_rows(v, rows, values):
 
 
 @functools.partial(jax.jit, static_argnames=("max_iterations",))
-def optimize_lower(abstraction, v0, tol, max_iterations: int):
-    """Returns ``(p_low (N+1,), policy over rows (R,), iterations, last change)``."""
+def optimize_lower(abstraction, v0, tol, max_iterations: int, policy0=None):
+    """Returns ``(p_low (N+1,), policy over rows (R,), iterations, last change)``.
+
+    ``v0`` must lie below p_low with ``v0 <= T(v0)`` (p^0 does; so does the value of a relaxation,
+    an abstraction whose ambiguity sets contain this one's). ``policy0``: initial strategy.
+    """
     rows = abstraction.rows
 
     def body(state):
@@ -46,7 +50,8 @@ def optimize_lower(abstraction, v0, tol, max_iterations: int):
         k, _, _, delta = state
         return (delta > tol) & (k < max_iterations)
 
-    init = (jnp.int32(0), v0, jnp.zeros(rows.shape, jnp.int32), jnp.asarray(jnp.inf, v0.dtype))
+    policy0 = jnp.zeros(rows.shape, jnp.int32) if policy0 is None else policy0
+    init = (jnp.int32(0), v0, policy0, jnp.asarray(jnp.inf, v0.dtype))
     k, v, policy, delta = jax.lax.while_loop(cond, body, init)
     return v, policy, k, delta
 

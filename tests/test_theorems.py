@@ -1,0 +1,68 @@
+"""The paper's tightness results (Theorems 2-3) as properties of random small systems."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import smdpjax as sj
+from smdpjax.abstraction import build, compute_grid_clusters
+
+KINDS = ("imdp", "2imdp", "smdp")
+
+
+@st.composite
+def random_problem(draw):
+    """A random nonlinear 2-D system, grid, specification and noise partition."""
+    a = draw(st.floats(0.6, 1.0))
+    b = draw(st.floats(-0.3, 0.3))
+    gain = draw(st.floats(0.05, 0.15))
+    bend = draw(st.floats(-0.1, 0.1))
+    noise_gain = draw(st.floats(0.02, 0.08))
+    gaussian = draw(st.booleans())
+    cells = draw(st.sampled_from([6, 8]))
+    noise_cells = 3
+
+    def dynamics(x, u, w):
+        return jnp.array([a * x[0] + b * (x[1] - 0.5) + gain * u[0] + bend * jnp.sin(3 * x[1]) + noise_gain * w[0],
+                          a * x[1] + gain * u[1] + bend * x[0] * x[1] + noise_gain * w[1]])
+
+    actions = np.array([[1.0, 0.0], [0.0, 1.0], [0.7, 0.7]])
+    if gaussian:
+        noise, ngrid = sj.Gaussian([0.0, 0.0], [1.0, 1.0]), sj.NoiseGrid.ball([0.0, 0.0], 2.0, noise_cells)
+    else:
+        noise, ngrid = sj.Uniform([-1.0, -1.0], [1.0, 1.0]), sj.NoiseGrid.box([-1, -1], [1, 1], noise_cells)
+    w = 1.0 / cells
+    grid = sj.StateGrid([0, 0], [1, 1], cells, reach=[([1 - 2 * w, 1 - 2 * w], [1, 1])],
+                        avoid=[([0.5 - w / 2, 0.2], [0.5 + w / 2, 0.5])])
+    return sj.System(dynamics, actions=actions, noise=noise), grid, ngrid
+
+
+def solve_all(system, grid, ngrid):
+    clusters = compute_grid_clusters(system, grid, ngrid)
+    abstractions = {kind: build(kind, grid, clusters) for kind in KINDS}
+    return abstractions, {kind: sj.synthesize(a, tol=1e-10) for kind, a in abstractions.items()}
+
+
+@settings(max_examples=5, deadline=None)
+@given(random_problem())
+def test_bounds_are_ordered_and_nest(problem):
+    """Theorem 3. Lower bounds, each class under its own optimal strategy:
+    p_low(SMDP) >= p_low(IMDP) and p_low(2I-MDP) >= p_low(IMDP) at every state. Whole intervals,
+    under one common strategy (the SMDP's, evaluated with ``verify``): SMDP inside IMDP and
+    2I-MDP inside IMDP. (Upper bounds under each class's own strategy are not ordered in general.)
+    """
+    system, grid, ngrid = problem
+    abstractions, sols = solve_all(system, grid, ngrid)
+    low = {k: np.asarray(s.lower_optimal) for k, s in sols.items()}
+    assert np.all(low["smdp"] >= low["imdp"] - 1e-8)
+    assert np.all(low["2imdp"] >= low["imdp"] - 1e-8)
+
+    policy = np.asarray(sols["smdp"].policy)
+    checked = {k: sj.verify(a, policy, tol=1e-10) for k, a in abstractions.items()}
+    lo = {k: np.asarray(s.lower) for k, s in checked.items()}
+    up = {k: np.asarray(s.upper) for k, s in checked.items()}
+    for inner, outer in (("smdp", "imdp"), ("2imdp", "imdp")):
+        assert np.all(lo[inner] >= lo[outer] - 1e-8), (inner, outer)
+        assert np.all(up[inner] <= up[outer] + 1e-8), (inner, outer)
