@@ -1,0 +1,61 @@
+"""Verification of a fixed look-up-table controller for finite-horizon safety (the paper's third
+case study, at two rooms): bounds for every class, nested, and containing the Monte Carlo estimate."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import smdpjax as sj
+from smdpjax.abstraction import build, compute_grid_clusters
+
+B, A, XA, C = 0.0334, 0.044, 6.0, 1.6
+HORIZON = 15
+
+
+def rooms(x, u, w):
+    neighbours = jnp.roll(x, 1) + jnp.roll(x, -1) - 2 * x  # a ring of two rooms: each is the other's neighbour
+    return (x + B * (XA - x) + A * neighbours / 2 + 0.8 * C * u) * (1 + w)
+
+
+@pytest.fixture(scope="module")
+def setup():
+    heaters = np.array([[0, 0], [0, 1], [1, 0], [1, 1]], float)
+    system = sj.System(rooms, actions=heaters, noise=sj.Gaussian([0, 0], [0.0075, 0.0075]))
+    grid = sj.StateGrid([17.5, 17.5], [22.0, 22.0], 12)
+    noise = sj.NoiseGrid.ball([0, 0], 0.0295, 4)
+    centers = np.asarray(grid.cell_centers())
+    on = (centers < 19.75).astype(int)  # u_i = 1 below the middle of the band
+    table = on[:, 0] * 2 + on[:, 1]  # index into `heaters`
+    clusters = compute_grid_clusters(system, grid, noise)
+    return system, grid, table, {k: build(k, grid, clusters) for k in ("imdp", "2imdp", "smdp")}
+
+
+def test_safety_bounds_nest_and_contain_monte_carlo(setup):
+    system, grid, table, abstractions = setup
+    sols = {k: sj.verify(a, table, horizon=HORIZON, objective="safety") for k, a in abstractions.items()}
+    lo = {k: np.asarray(s.lower) for k, s in sols.items()}
+    up = {k: np.asarray(s.upper) for k, s in sols.items()}
+    for inner in ("smdp", "2imdp"):
+        assert np.all(lo[inner] >= lo["imdp"] - 1e-10) and np.all(up[inner] <= up["imdp"] + 1e-10)
+    assert lo["smdp"][:-1].mean() > 0.5  # the heater keeps most rooms in the band
+
+    cells = np.array([0, 30, 66, 77, 100, 143])
+    per_cell = 2000
+    x0 = sj.uniform_in_cells(grid, cells, per_cell, jax.random.PRNGKey(0))
+    res = sj.simulate(system, sj.Controller(grid, np.append(table, 0)), x0, jax.random.PRNGKey(1),
+                      max_steps=HORIZON, objective="safety")
+    sat = np.asarray(res.satisfied).reshape(len(cells), per_cell).mean(axis=1)
+    tol = 4.5 * np.sqrt(np.maximum(sat * (1 - sat), 1e-3) / per_cell)
+    for k in sols:
+        assert np.all(sat >= lo[k][cells] - tol), k
+        assert np.all(sat <= up[k][cells] + tol), k
+
+
+def test_safety_with_one_step_is_the_one_step_bound(setup):
+    _, grid, table, abstractions = setup
+    smdp = abstractions["smdp"]
+    sol = sj.verify(smdp, table, horizon=1, objective="safety")
+    v0 = smdp.initial_values("safety")
+    expect = smdp.q_values(v0, "min", jnp.asarray(table[np.asarray(smdp.rows)]))
+    np.testing.assert_allclose(np.asarray(sol.lower)[np.asarray(smdp.rows)], np.asarray(expect), atol=1e-9)
