@@ -89,6 +89,11 @@ def index_boxes(grid: StateGrid, lo, hi) -> IndexBoxes:
     return IndexBoxes(start=start.astype(jnp.int32), length=length.astype(jnp.int32), sink=sink | empty[..., 0])
 
 
+def index_dtype(num_states: int):
+    """Smallest signed integer type that holds state indices and the padding ``num_states``."""
+    return jnp.int16 if num_states < np.iinfo(np.int16).max else jnp.int32
+
+
 def max_lengths(boxes: IndexBoxes) -> tuple:
     """Largest length per dimension over all boxes (a static shape for ``cluster_members``)."""
     lengths = np.asarray(jnp.max(boxes.length.reshape(-1, boxes.length.shape[-1]), axis=0))
@@ -96,7 +101,8 @@ def max_lengths(boxes: IndexBoxes) -> tuple:
 
 
 def cluster_members(grid: StateGrid, boxes: IndexBoxes, lengths: tuple):
-    """Padded member lists ``(*B, prod(lengths) + 1)`` int32 of the clusters of ``boxes``.
+    """Padded member lists ``(*B, prod(lengths) + 1)`` of the clusters of ``boxes``
+    (int16 when the states fit, see ``index_dtype``, else int32).
 
     Members are flat cell indices, the sink is ``grid.sink``, padding is ``grid.sink + 1``.
     ``lengths`` must bound ``boxes.length`` per dimension (see ``max_lengths``).
@@ -110,4 +116,4 @@ def cluster_members(grid: StateGrid, boxes: IndexBoxes, lengths: tuple):
     flat = jnp.ravel_multi_index(tuple(jnp.moveaxis(idx, -1, 0)), tuple(grid.cells.tolist()), mode="clip")
     grid_members = jnp.where(valid, flat, sentinel).astype(jnp.int32)
     sink_member = jnp.where(boxes.sink, grid.sink, sentinel).astype(jnp.int32)[..., None]
-    return jnp.concatenate([grid_members, sink_member], axis=-1)
+    return jnp.concatenate([grid_members, sink_member], axis=-1).astype(index_dtype(grid.num_states))

@@ -28,7 +28,7 @@ import numpy as np
 
 from .._pytree import pytree_dataclass, static_field
 from .base import AbstractionMixin, check_adversary
-from .clusters import cluster_members, max_lengths
+from .clusters import cluster_members, index_dtype, max_lengths
 from .grid_clusters import GridClusters
 
 _ROWS_PER_CHUNK = 1 << 12
@@ -37,7 +37,7 @@ _ROWS_PER_CHUNK = 1 << 12
 @pytree_dataclass
 class IMDP(AbstractionMixin):
     """Attributes:
-        successors: ``(R, A, K)`` int32 successor states (cells, sink ``N``), padded with ``N + 1``.
+        successors: ``(R, A, K)`` int16/int32 successor states (cells, sink ``N``), padded with ``N + 1``.
         lower, upper: ``(R, A, K)`` float64 transition bounds of Lemma 1 (0 on padding).
         upper_rest: scalar upper bound of every state not listed (P_W of the remainder cell).
         rows: ``(R,)`` int32 state index of each row (the non-terminal cells).
@@ -59,6 +59,7 @@ class IMDP(AbstractionMixin):
         chunks = ((cluster_members(grid, part, lengths), part.single_cell | part.inside_sink)
                   for part in row_chunks(boxes))
         succ, lower, upper = lemma1_bounds(chunks, clusters.prob, grid.num_cells + 1)
+        succ = succ.astype(index_dtype(grid.num_states))
         rest = jnp.asarray(clusters.prob_rest)
         return cls(successors=succ, lower=lower, upper=jnp.where(succ <= grid.num_cells, upper + rest, 0.0),
                    upper_rest=rest, rows=jnp.asarray(clusters.rows, jnp.int32),

@@ -26,7 +26,7 @@ from .grid_clusters import GridClusters
 @pytree_dataclass
 class SMDP(AbstractionMixin):
     """Attributes:
-        members: ``(R, A, C_b, K)`` int32 cluster members (cells, sink ``N``), padded with ``N + 1``.
+        members: ``(R, A, C_b, K)`` int16 (int32 beyond 32k states) cluster members (cells, sink ``N``), padded with ``N + 1``.
         prob: ``(C_b,)`` P_W(c) of the bounded noise cells.
         prob_rest: scalar P_W of the remainder cell, whose cluster is every state.
         rows: ``(R,)`` int32 state index of each row (the non-terminal cells).
