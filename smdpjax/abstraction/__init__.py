@@ -29,7 +29,7 @@ def build(kind: str, grid: StateGrid, clusters: GridClusters, **options):
 
 
 def abstract(system: System, state_grid: StateGrid, noise_grid: NoiseGrid, kind: str = "smdp", *,
-             method: str = "both", progress: bool = False, **options):
+             method: str = "both", policy=None, progress: bool = False, **options):
     """Abstract ``system`` on the partitions into an uncertain MDP of class ``kind``.
 
     Args:
@@ -39,6 +39,8 @@ def abstract(system: System, state_grid: StateGrid, noise_grid: NoiseGrid, kind:
         kind: ``"imdp"``, ``"2imdp"`` (option ``block``: coarse block shape in cells), ``"smdp"``
             (and ``"mimdp"`` where available).
         method: reachable-set enclosure: ``"natural"``, ``"centered"`` or ``"both"``.
+        policy: optional ``(N,)`` action index per cell: abstract only that action in each cell
+            (``|A| = 1``), to verify a fixed controller with ``verify(abstraction)``.
         progress: show a progress bar over the reachable-set chunks.
 
     Returns:
@@ -48,7 +50,8 @@ def abstract(system: System, state_grid: StateGrid, noise_grid: NoiseGrid, kind:
         raise ValueError(f"unknown abstraction kind {kind!r}; expected one of {KINDS}")
     if kind not in _BUILDERS:
         raise NotImplementedError(f"abstraction kind {kind!r} is not available yet")
-    clusters = compute_grid_clusters(system, state_grid, noise_grid, method=method, progress=progress)
+    clusters = compute_grid_clusters(system, state_grid, noise_grid, method=method, policy=policy,
+                                     progress=progress)
     return build(kind, state_grid, clusters, **options)
 
 

@@ -57,15 +57,29 @@ def validate(system: System, grid: StateGrid, noise_grid: NoiseGrid) -> np.ndarr
 
 
 def compute_grid_clusters(system: System, grid: StateGrid, noise_grid: NoiseGrid, *, method: str = "both",
-                          progress: bool = False) -> GridClusters:
+                          policy=None, progress: bool = False) -> GridClusters:
     """Reachable boxes of all (non-terminal cell, action, bounded noise cell) triples, snapped to
-    index boxes on ``grid``. Raises ValueError if the dynamics give NaN bounds anywhere."""
+    index boxes on ``grid``. Raises ValueError if the dynamics give NaN bounds anywhere.
+
+    ``policy``: optional ``(N,)`` action index per cell (a fixed controller, e.g. a look-up
+    table). Only that action is abstracted in each cell, so the abstraction has ``|A| = 1``
+    (action 0 of a row is the policy's action): the way to verify a given controller cheaply.
+    """
     if method not in ("natural", "centered", "both"):
         raise ValueError(f"unknown reachable-set method {method!r}; expected 'natural', 'centered' or 'both'")
     rows = validate(system, grid, noise_grid)
+    actions = jnp.asarray(system.actions)
+    if policy is not None:
+        policy = np.asarray(policy)
+        if policy.shape not in ((grid.num_cells,), (grid.num_states,)) or not np.issubdtype(policy.dtype, np.integer):
+            raise ValueError(f"policy must be ({grid.num_cells},) integer action indices, got {policy.shape} "
+                             f"{policy.dtype}")
+        if np.any(policy < 0) or np.any(policy >= system.num_actions):
+            raise ValueError(f"policy entries must lie in [0, {system.num_actions})")
+        actions = actions[jnp.asarray(policy[rows])][:, None, :]  # (R, 1, m)
     prob, prob_rest = noise_grid.probabilities(system.noise)
     w_lo, w_hi = noise_grid.boxes()
-    per_row = system.num_actions * noise_grid.num_bounded
+    per_row = (1 if policy is not None else system.num_actions) * noise_grid.num_bounded
     chunk = int(max(1, min(rows.size, BOXES_PER_CHUNK // per_row)))
     run = _chunk_fn(system.dynamics, grid, method)
     starts = range(0, rows.size, chunk)
@@ -77,7 +91,8 @@ def compute_grid_clusters(system: System, grid: StateGrid, noise_grid: NoiseGrid
         idx = rows[start:start + chunk]
         padded = np.concatenate([idx, np.full(chunk - idx.size, idx[-1])])  # one compiled shape
         x_lo, x_hi = grid.cell_bounds(padded)
-        boxes, has_nan = run(x_lo, x_hi, jnp.asarray(system.actions), w_lo, w_hi)
+        row_actions = actions if actions.ndim == 2 else actions[np.minimum(np.arange(start, start + chunk), rows.size - 1)]
+        boxes, has_nan = run(x_lo, x_hi, row_actions, w_lo, w_hi)
         parts.append(jax.tree.map(lambda a: a[:idx.size], boxes))
         nan_rows.append(np.asarray(has_nan[:idx.size]))
     nan_rows = np.concatenate(nan_rows)

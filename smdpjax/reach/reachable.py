@@ -14,7 +14,7 @@ def reachable_boxes(dynamics, x_low, x_high, actions, w_low, w_high, method: str
     Args:
         dynamics: ``f(x (n,), u (m,), w (d,)) -> (n,)``.
         x_low, x_high: ``(R, n)`` state boxes.
-        actions: ``(A, m)`` inputs.
+        actions: ``(A, m)`` inputs shared by all states, or ``(R, A, m)`` per state.
         w_low, w_high: ``(C, d)`` noise boxes (bounded).
         method: ``"natural"``, ``"centered"`` or ``"both"`` (their intersection).
 
@@ -28,6 +28,7 @@ def reachable_boxes(dynamics, x_low, x_high, actions, w_low, w_high, method: str
 
     over_noise = jax.vmap(one, in_axes=(None, None, None, 0, 0))
     over_actions = jax.vmap(over_noise, in_axes=(None, None, 0, None, None))
-    over_states = jax.vmap(over_actions, in_axes=(0, 0, None, None, None))
-    return over_states(jnp.asarray(x_low), jnp.asarray(x_high), jnp.asarray(actions),
+    actions = jnp.asarray(actions)
+    over_states = jax.vmap(over_actions, in_axes=(0, 0, 0 if actions.ndim == 3 else None, None, None))
+    return over_states(jnp.asarray(x_low), jnp.asarray(x_high), actions,
                        jnp.asarray(w_low), jnp.asarray(w_high))

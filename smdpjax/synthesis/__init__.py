@@ -79,18 +79,24 @@ def synthesize(abstraction, horizon: int | None = None, tol: float = 1e-6, *, ob
                    objective)
 
 
-def verify(abstraction, policy, horizon: int | None = None, tol: float = 1e-6, *,
+def verify(abstraction, policy=None, horizon: int | None = None, tol: float = 1e-6, *,
            objective: str = "reach_avoid", max_iterations: int = 100_000) -> Solution:
     """Lower and upper bounds of a given controller (no optimization).
 
     Args:
         policy: action index per grid cell, ``(N,)`` or ``(N+1,)`` (e.g. a look-up table), or
-            ``(T, N)``/``(T, N+1)`` per time step when ``horizon=T``.
+            ``(T, N)``/``(T, N+1)`` per time step when ``horizon=T``. May be omitted for a
+            single-action abstraction (``abstract(..., policy=table)`` abstracts the table's
+            action only).
         Other arguments as in ``synthesize``.
     """
     v0 = _check(abstraction, horizon, tol, objective)
-    policy = np.asarray(policy)
     n = abstraction.num_states
+    if policy is None:
+        if abstraction.num_actions != 1:
+            raise ValueError(f"the abstraction has {abstraction.num_actions} actions: pass the policy to verify")
+        policy = np.zeros(n, np.int32)
+    policy = np.asarray(policy)
     if not np.issubdtype(policy.dtype, np.integer):
         raise TypeError(f"policy must hold integer action indices, got dtype {policy.dtype}")
     if policy.shape[-1] not in (n - 1, n) or policy.ndim not in (1, 2):

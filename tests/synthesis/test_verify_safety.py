@@ -59,3 +59,20 @@ def test_safety_with_one_step_is_the_one_step_bound(setup):
     v0 = smdp.initial_values("safety")
     expect = smdp.q_values(v0, "min", jnp.asarray(table[np.asarray(smdp.rows)]))
     np.testing.assert_allclose(np.asarray(sol.lower)[np.asarray(smdp.rows)], np.asarray(expect), atol=1e-9)
+
+
+def test_abstracting_only_the_table_action_gives_the_same_bounds(setup):
+    """abstract(..., policy=table) keeps |A| = 1 (as the paper does) and loses nothing."""
+    system, grid, table, abstractions = setup
+    noise = sj.NoiseGrid.ball([0, 0], 0.0295, 4)
+    single = sj.abstract(system, grid, noise, "smdp", policy=table)
+    assert single.num_actions == 1
+    assert single.nbytes < abstractions["smdp"].nbytes / 3
+    a = sj.verify(single, horizon=HORIZON, objective="safety")
+    b = sj.verify(abstractions["smdp"], table, horizon=HORIZON, objective="safety")
+    np.testing.assert_allclose(np.asarray(a.lower), np.asarray(b.lower), atol=1e-12)
+    np.testing.assert_allclose(np.asarray(a.upper), np.asarray(b.upper), atol=1e-12)
+    with pytest.raises(ValueError, match="pass the policy"):
+        sj.verify(abstractions["smdp"], horizon=3, objective="safety")
+    with pytest.raises(ValueError, match="policy entries"):
+        sj.abstract(system, grid, noise, "smdp", policy=np.full(grid.num_cells, 4))
