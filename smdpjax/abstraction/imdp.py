@@ -65,6 +65,35 @@ class IMDP(AbstractionMixin):
                    upper_rest=rest, rows=jnp.asarray(clusters.rows, jnp.int32),
                    labels=jnp.asarray(grid.state_labels))
 
+    @classmethod
+    def from_members(cls, members, prob, prob_rest, rows, labels, width: int | None = None) -> "IMDP":
+        """An IMDP from a frozen cluster structure and noise-cell probabilities (Lemma 1 again).
+
+        ``members (R, A, C_b, K)`` are the SMDP's padded cluster member lists (padding
+        ``N + 1``); a cluster with exactly one member lies inside one state. The bounds are sums of
+        ``prob (C_b,)`` (plus ``prob_rest`` on the upper ones), so they are linear and
+        differentiable in the probabilities, which may be traced (``jax.grad``, ``jax.vmap``).
+        ``width``: successors per row (static); computed from ``members`` when omitted, which
+        needs concrete members. Equal to ``from_clusters`` on the same clusters.
+        """
+        labels = jnp.asarray(labels)
+        sentinel = int(labels.shape[0])
+        members = jnp.asarray(members)
+        if width is None:
+            width = successor_width(members, sentinel)
+        prob = jnp.asarray(prob)
+        pieces = [_interval_bounds(ids, prob, jnp.sum(ids < sentinel, axis=-1) == 1, sentinel, int(width))
+                  for ids in row_chunks(members)]
+        succ, lower, upper = (jnp.concatenate(p) for p in zip(*pieces))
+        succ = succ.astype(index_dtype(sentinel))
+        rest = jnp.asarray(prob_rest)
+        return cls(successors=succ, lower=lower, upper=jnp.where(succ < sentinel, upper + rest, 0.0),
+                   upper_rest=rest, rows=jnp.asarray(rows, jnp.int32), labels=labels)
+
+    def with_bounds(self, lower, upper, upper_rest) -> "IMDP":
+        """The same successor lists with other bounds (e.g. rebuilt from new probabilities)."""
+        return dataclasses.replace(self, lower=lower, upper=upper, upper_rest=jnp.asarray(upper_rest))
+
     @property
     def num_actions(self) -> int:
         return int(self.successors.shape[1])
@@ -157,6 +186,11 @@ def lemma1_bounds(chunks, prob, sentinel: int):
     prob = jnp.asarray(prob)
     pieces = [_interval_bounds(ids, prob, single, sentinel, width) for ids, single in chunks]
     return tuple(jnp.concatenate(p) for p in zip(*pieces))
+
+
+def successor_width(members, sentinel: int) -> int:
+    """Most distinct regions any row's clusters meet: the successor-list width of Lemma 1."""
+    return max(int(_count_distinct(ids, sentinel).max()) for ids in row_chunks(jnp.asarray(members)))
 
 
 @functools.partial(jax.jit, static_argnums=1)

@@ -46,6 +46,20 @@ class SMDP(AbstractionMixin):
         return cls(members=members, prob=jnp.asarray(clusters.prob), prob_rest=jnp.asarray(clusters.prob_rest),
                    rows=jnp.asarray(clusters.rows, jnp.int32), labels=jnp.asarray(grid.state_labels))
 
+    @classmethod
+    def from_members(cls, members, prob, prob_rest, rows, labels) -> "SMDP":
+        """An SMDP from a frozen cluster structure and noise-cell probabilities.
+
+        ``members (R, A, C_b, K)`` as in ``from_clusters``; ``prob (C_b,)``, ``prob_rest`` may be
+        traced: the SMDP is linear in them, so ``jax.grad``/``jax.vmap`` go through.
+        """
+        return cls(members=members, prob=jnp.asarray(prob), prob_rest=jnp.asarray(prob_rest),
+                   rows=jnp.asarray(rows, jnp.int32), labels=jnp.asarray(labels))
+
+    def with_probabilities(self, prob, prob_rest) -> "SMDP":
+        """The same clusters with other noise-cell probabilities ``prob (C_b,)``, ``prob_rest``."""
+        return dataclasses.replace(self, prob=jnp.asarray(prob), prob_rest=jnp.asarray(prob_rest))
+
     @property
     def num_actions(self) -> int:
         return int(self.members.shape[1])

@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Sequence
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -41,6 +42,37 @@ def cell_probabilities(distribution: Distribution, edges: Sequence, remainder: b
     else:
         rest = jnp.zeros((), probs.dtype)
     return probs, rest
+
+
+def ball_edges(center, radius, cells) -> tuple:
+    """Per-axis edges of the uniform grid of the inf-norm ball ``|w - center|_inf <= radius``.
+
+    ``center (d,)``, ``radius`` scalar or ``(d,)``, ``cells`` int or ``(d,)`` ints (static).
+    Returns ``d`` arrays ``(k_i + 1,)``, the edges ``NoiseGrid.ball`` uses, as a differentiable
+    function of ``center`` and ``radius`` (for gradients and sweeps over the noise partition).
+    """
+    center = jnp.atleast_1d(jnp.asarray(center, jnp.float64))
+    radius = jnp.broadcast_to(jnp.asarray(radius, jnp.float64), center.shape)
+    cells = np.broadcast_to(np.asarray(cells, int), center.shape)
+    return tuple(center[i] + radius[i] * jnp.linspace(-1.0, 1.0, int(k) + 1) for i, k in enumerate(cells))
+
+
+def warped_ball_edges(center, radius, logits: Sequence) -> tuple:
+    """Per-axis edges of a non-uniform grid of the inf-norm ball, from unconstrained parameters.
+
+    Axis ``i`` has ``k_i = len(logits[i])`` cells whose widths are ``2 radius_i softmax(logits[i])``,
+    so the edges are strictly increasing and span ``[center_i - radius_i, center_i + radius_i]``
+    for every real ``logits`` (zeros give the uniform ``ball_edges``). Differentiable in all three.
+    """
+    center = jnp.atleast_1d(jnp.asarray(center, jnp.float64))
+    radius = jnp.broadcast_to(jnp.asarray(radius, jnp.float64), center.shape)
+    edges = []
+    for i, z in enumerate(logits):
+        widths = jax.nn.softmax(jnp.asarray(z, jnp.float64))
+        unit = jnp.concatenate([jnp.zeros(1), jnp.cumsum(widths)])  # 0 .. 1
+        unit = unit.at[-1].set(1.0)  # exactly the ball's face, whatever the rounding of the sum
+        edges.append(center[i] + radius[i] * (2.0 * unit - 1.0))
+    return tuple(edges)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
