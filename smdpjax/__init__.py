@@ -5,7 +5,8 @@ The pipeline, one subpackage per step of the paper ("Beyond Interval MDPs", Grac
 * ``System`` and the noise distributions (``Gaussian``, ``Uniform``): Section 2.
 * ``partition``: the phi-conservative state grid S and the noise partition C (Sections 2, 7).
 * ``reach``: sound box enclosures of Reach(s, a, c) (interval and Jacobian bounds).
-* ``abstraction``: IMDP (Lemma 1) and SMDP (Definition 6) built from the same reachable sets.
+* ``abstraction``: IMDP (Lemma 1), 2I-MDP, MI-MDP (Definition 5) and SMDP (Definition 6), all
+  built from the same reachable sets.
 * ``synthesis``: robust dynamic programming (Proposition 1, Theorem 4), strategy and bounds.
 * ``simulation``: the refined controller and Monte Carlo validation (Theorem 5).
 * ``metrics``: e_avg, p_avg, memory, wall time (Section 7).
@@ -18,7 +19,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 from . import abstraction, metrics, partition, reach, synthesis  # noqa: E402
-from .abstraction import IMDP, KINDS, SMDP, abstract  # noqa: E402
+from .abstraction import IMDP, KINDS, MIMDP, SMDP, TwoLayerIMDP, abstract  # noqa: E402
 from .noise import Distribution, Gaussian, Uniform  # noqa: E402
 from .partition import AVOID, NONTERMINAL, REACH, NoiseGrid, StateGrid  # noqa: E402
 from .simulation import Controller, SimulationResult, simulate, uniform_in_cells  # noqa: E402
@@ -29,6 +30,6 @@ __version__ = "0.1.0"
 
 __all__ = [
     "System", "Distribution", "Gaussian", "Uniform", "StateGrid", "NoiseGrid", "NONTERMINAL", "REACH", "AVOID",
-    "abstract", "KINDS", "IMDP", "SMDP", "synthesize", "verify", "Solution", "Controller", "simulate",
+    "abstract", "KINDS", "IMDP", "TwoLayerIMDP", "MIMDP", "SMDP", "synthesize", "verify", "Solution", "Controller", "simulate",
     "SimulationResult", "uniform_in_cells", "abstraction", "metrics", "partition", "reach", "synthesis",
 ]

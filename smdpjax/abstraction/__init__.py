@@ -12,10 +12,11 @@ from .base import AbstractionMixin
 from .clusters import IndexBoxes, cluster_members, index_boxes
 from .grid_clusters import GridClusters, compute_grid_clusters
 from .imdp import IMDP, interval_min
+from .mimdp import MIMDP
 from .smdp import SMDP
 from .twolayer import TwoLayerIMDP
 
-_BUILDERS = {"imdp": IMDP, "2imdp": TwoLayerIMDP, "smdp": SMDP}
+_BUILDERS = {"imdp": IMDP, "2imdp": TwoLayerIMDP, "mimdp": MIMDP, "smdp": SMDP}
 KINDS = ("imdp", "2imdp", "mimdp", "smdp")
 
 
@@ -36,15 +37,17 @@ def abstract(system: System, state_grid: StateGrid, noise_grid: NoiseGrid, kind:
         system: the stochastic system.
         state_grid: the phi-conservative state partition S (with reach/avoid labels).
         noise_grid: the partition C of W.
-        kind: ``"imdp"``, ``"2imdp"`` (option ``block``: coarse block shape in cells), ``"smdp"``
-            (and ``"mimdp"`` where available).
+        kind: ``"imdp"``, ``"2imdp"`` (option ``block``: coarse block shape in cells),
+            ``"mimdp"`` (options ``extra_clusters``, ``lp_backend="clarabel"|"highs"``, see
+            ``MIMDP.from_clusters``) or ``"smdp"``.
         method: reachable-set enclosure: ``"natural"``, ``"centered"`` or ``"both"``.
         policy: optional ``(N,)`` action index per cell: abstract only that action in each cell
             (``|A| = 1``), to verify a fixed controller with ``verify(abstraction)``.
         progress: show a progress bar over the reachable-set chunks.
 
     Returns:
-        An abstraction PyTree (``IMDP``, ``TwoLayerIMDP``, ``SMDP``), ready for ``smdpjax.synthesize``.
+        An abstraction PyTree (``IMDP``, ``TwoLayerIMDP``, ``MIMDP``, ``SMDP``), ready for
+        ``smdpjax.synthesize``.
     """
     if kind not in KINDS:
         raise ValueError(f"unknown abstraction kind {kind!r}; expected one of {KINDS}")
@@ -55,5 +58,5 @@ def abstract(system: System, state_grid: StateGrid, noise_grid: NoiseGrid, kind:
     return build(kind, state_grid, clusters, **options)
 
 
-__all__ = ["abstract", "build", "KINDS", "IMDP", "SMDP", "TwoLayerIMDP", "AbstractionMixin", "GridClusters", "IndexBoxes",
+__all__ = ["abstract", "build", "KINDS", "IMDP", "SMDP", "TwoLayerIMDP", "MIMDP", "AbstractionMixin", "GridClusters", "IndexBoxes",
            "compute_grid_clusters", "cluster_members", "index_boxes", "interval_min"]

@@ -1,0 +1,423 @@
+"""Host-side linear programs of the MI-MDP inner problem (Clarabel, or HiGHS if installed).
+
+For every row (s, a) the MI-MDP inner problem ``min_{gamma in Gamma^MI} <gamma, w>`` is an LP.
+This module solves a *surrogate* of it on the CPU only to obtain Lagrange multipliers of the
+cluster constraints; ``mimdp.py`` turns any nonnegative multipliers into a certified bound (weak
+duality), so nothing here affects soundness, only how tight the bound is.
+
+The surrogate LP of one row, in the shifted variables ``y = gamma - lower`` (listed successors):
+
+    min  sum_k w(succ_k) y_k + sum_b c_b u_b + c_rest u_rest
+    s.t. sum_k y_k + sum_b u_b + u_rest = 1 - sum_k lower_k
+         0 <= y_k <= upper_k - lower_k,  0 <= u_b <= rest,  0 <= u_rest <= (n_unlisted - B) rest
+         lo_q - sum_{k in q} lower_k  <=  sum_{k in q} y_k  <=  up_q - sum_{k in q} lower_k
+
+(multipliers lambda+ for the left side, lambda- for the right side of each cluster q). The
+unlisted states (interval ``[0, rest]`` each) enter as ``B`` bucket variables priced at the B
+cheapest unlisted states and a remainder variable priced at the (B+1)-th cheapest: a relaxation,
+exact whenever ``B rest >= 1`` or ``B = n_unlisted``. When the unlisted states' total capacity is
+negligible they are priced by the remainder variable alone. Cluster sides that the interval
+bounds already imply are left out (multiplier 0).
+
+The constraint data are built once per LP (at construction); each call changes only the
+objective. Backends:
+
+* ``"clarabel"`` (default, a declared dependency): interior point. The problem of each LP is
+  set up once and re-solved after ``DefaultSolver.update(q=...)``; several LPs can be stacked
+  block-diagonally into one problem (``block_size``; no gain measured, see
+  ``benchmarks/mimdp_lp.py``). Variable bounds become rows of the nonnegative cone.
+* ``"highs"`` (needs ``highspy``): simplex with native variable bounds and ranged rows. Each LP
+  keeps its model and its last optimal basis (one per adversary direction), and every call warm
+  starts from that basis, which is nearly optimal again when the values change little between
+  iterations. One ``Highs`` instance per thread solves the LPs one after the other (a ``Highs``
+  object per LP would hold ~0.5 MB each).
+
+Both release the GIL while solving; ``threads > 1`` solves LPs concurrently.
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+import time
+
+import numpy as np
+
+# A cluster constraint side counts as implied by the interval bounds within this slack.
+_REDUNDANT_SLACK = 1e-12
+# Unlisted states whose total capacity is below this are priced by one aggregated variable.
+_NEGLIGIBLE_MASS = 1e-6
+BACKENDS = ("clarabel", "highs")
+
+
+class ClusterLPs:
+    """LP data of every (row, action) of an MI-MDP and the solvers that use it.
+
+    Compared and hashed by identity (it sits in a static PyTree field).
+
+    Args:
+        succ, lower, upper: ``(P, K)`` listed successors (padding ``>= num_states``) and their
+            bounds (``upper`` includes ``rest``), one LP per leading index.
+        rest: upper bound of every unlisted state.
+        slots: ``(P, J, L)`` cluster members as slots into ``succ`` (padding ``>= K``).
+        cluster_lower, cluster_upper: ``(P, J)`` cluster bounds.
+        num_states: N + 1.
+        backend: ``"clarabel"`` or ``"highs"``.
+        block_size: LPs stacked per Clarabel problem (``"clarabel"`` only).
+        max_buckets: cap on the bucket variables of the unlisted states.
+        settings: solver options (Clarabel settings attributes, or HiGHS option names).
+        threads: LPs solved concurrently.
+        max_cached_solvers: Clarabel solvers kept between calls (~0.5 MB each for LPs of ~170
+            variables); the other LPs are set up again at every call (about +25% time).
+    """
+
+    def __init__(self, succ, lower, upper, rest, slots, cluster_lower, cluster_upper, num_states, *,
+                 backend: str = "clarabel", block_size: int = 1, max_buckets: int = 16,
+                 settings: dict | None = None, threads: int = 1, cache_size: int = 4,
+                 max_cached_solvers: int = 2048):
+        if backend not in BACKENDS:
+            raise ValueError(f"unknown LP backend {backend!r}; expected one of {BACKENDS}")
+        _import(backend)  # fail early if it is missing
+        self.backend = backend
+        self.num_states = int(num_states)
+        self.rest = float(rest)
+        self.succ = np.ascontiguousarray(succ, dtype=np.int64)
+        self.num_lps, self.width = self.succ.shape
+        self.num_clusters = int(slots.shape[1])
+        self.block_size = int(block_size)
+        self.threads = int(threads)
+        # Clarabel: iterative refinement of the KKT solves costs ~40% of the time and changes the
+        # multipliers by ~1e-9 here (measured), which the certificate does not need
+        # HiGHS: at its default feasibility tolerances (1e-7) it stops at vertices that violate
+        # cluster constraints by ~5e-8, whose duals certify ~5e-8 less than the optimum
+        defaults = ({"iterative_refinement_enable": False} if backend == "clarabel" else
+                    {"primal_feasibility_tolerance": 1e-9, "dual_feasibility_tolerance": 1e-9})
+        self.settings = {**defaults, **(settings or {})}
+        self._cache_size = int(cache_size)
+        self._plans: collections.OrderedDict = collections.OrderedDict()
+        self._solvers: dict = {}  # Clarabel solvers, HighsLp models and HiGHS bases, by key
+        self._cached_solvers = 0
+        self.max_cached_solvers = int(max_cached_solvers)
+        self._local = threading.local()
+        self._lock = threading.Lock()
+        self._executor = None
+        self.stats = collections.Counter()
+        self._build(np.asarray(lower, np.float64), np.asarray(upper, np.float64), np.asarray(slots),
+                    np.asarray(cluster_lower, np.float64), np.asarray(cluster_upper, np.float64), int(max_buckets))
+
+    # -- construction -------------------------------------------------------------------------
+    def _build(self, lower, upper, slots, clo, cup, max_buckets):
+        """Per-LP data: variable capacities and cost sources, cluster rows with their bounds."""
+        n_states, width, rest = self.num_states, self.width, self.rest
+        listed = self.succ < n_states
+        n_unlisted = n_states - listed.sum(1)
+        cap = np.where(listed, upper - lower, 0.0)
+        lower = np.where(listed, lower, 0.0)
+        if rest > 0:
+            buckets = np.minimum(n_unlisted, min(max_buckets, int(np.ceil(1.0 / rest - 1e-9))))
+            buckets = np.where(n_unlisted * rest <= _NEGLIGIBLE_MASS, 0, buckets)
+            has_rest = n_unlisted > buckets
+        else:
+            buckets = np.zeros(self.num_lps, np.int64)
+            has_rest = np.zeros(self.num_lps, bool)
+        self.buckets = buckets.astype(np.int64)
+        self.has_rest = has_rest
+        self.cost_width = width + int(buckets.max(initial=0)) + 1  # listed slots, then cheapest unlisted
+
+        # cluster sides, vectorized over (LP, cluster): which are implied, and their bounds in y
+        valid = slots < width
+        at = np.minimum(slots, width - 1)
+        take = lambda a: np.where(valid, np.take_along_axis(a[:, None, :], at, axis=2), 0.0)
+        low_fixed = take(lower).sum(-1)
+        room = take(cap).sum(-1)
+        free_mass = 1.0 - lower.sum(-1)
+        need = np.minimum(clo - low_fixed, room)
+        allow = np.maximum(cup - low_fixed, 0.0)
+        is_var = listed & (cap > 0)
+        var_of_slot = np.where(is_var, np.cumsum(is_var, axis=1) - 1, -1)
+        member_var = np.where(valid, np.take_along_axis(var_of_slot[:, None, :], at, axis=2), -1)
+        has_var = np.any(member_var >= 0, axis=-1)
+        use_lo = (clo - low_fixed > _REDUNDANT_SLACK) & has_var
+        use_hi = (allow < np.minimum(room, free_mass[:, None]) - _REDUNDANT_SLACK) & has_var
+        row_lo = np.where(use_lo, need, -np.inf)
+        row_hi = np.where(use_hi, allow, np.inf)
+
+        self._lps = []
+        for p in range(self.num_lps):
+            var_slots = np.flatnonzero(is_var[p])
+            b_p = int(buckets[p])
+            caps = np.concatenate([cap[p, var_slots], np.full(b_p, rest),
+                                   [(n_unlisted[p] - b_p) * rest] if has_rest[p] else []])
+            cost_src = np.concatenate([var_slots, width + np.arange(b_p), [width + b_p] if has_rest[p] else []])
+            rows = np.flatnonzero(use_lo[p] | use_hi[p])
+            members = member_var[p][rows]
+            keep = members >= 0
+            self._lps.append(dict(
+                caps=caps, cost_src=cost_src.astype(np.int64), free_mass=float(free_mass[p]), cluster=rows,
+                ptr=np.concatenate([[0], np.cumsum(keep.sum(1))]), var=members[keep].astype(np.int64),
+                lo=row_lo[p][rows], hi=row_hi[p][rows]))
+        self.num_vars = np.array([lp["caps"].size for lp in self._lps])
+        self.num_cluster_rows = np.array([np.isfinite(lp["lo"]).sum() + np.isfinite(lp["hi"]).sum()
+                                          for lp in self._lps])
+        # constraint rows in the Clarabel form (equality, two bounds per variable, cluster sides)
+        self.num_rows = 1 + 2 * self.num_vars + self.num_cluster_rows
+        self.nnz = int(sum(3 * lp["caps"].size + lp["var"].size * 2 for lp in self._lps))
+
+    def _conic(self, p):
+        """LP ``p`` in Clarabel's form ``A y + s = b``, ``s`` in {0} x R_+^(m-1):
+        (rows, cols, vals, b, multiplier rows, multiplier targets)."""
+        lp = self._lps[p]
+        n = lp["caps"].size
+        sides = np.stack([np.isfinite(lp["lo"]), np.isfinite(lp["hi"])], axis=1)  # (k, 2)
+        side_row = 1 + 2 * n + np.cumsum(sides.ravel()).reshape(sides.shape) - 1
+        cluster_of = np.repeat(np.arange(sides.shape[0]), np.diff(lp["ptr"]))  # cluster of each member entry
+        member_side = sides[cluster_of]  # (entries, 2)
+        entry, side = np.nonzero(member_side)
+        kept_i, kept_s = np.nonzero(sides)
+        rows = np.concatenate([np.zeros(n, np.int64), 1 + np.arange(n), 1 + n + np.arange(n),
+                               side_row[cluster_of[entry], side]])
+        cols = np.concatenate([np.arange(n)] * 3 + [lp["var"][entry]])
+        vals = np.concatenate([np.ones(n), -np.ones(n), np.ones(n), np.where(side == 0, -1.0, 1.0)])
+        bound = np.where(kept_s == 0, -lp["lo"][kept_i], lp["hi"][kept_i])
+        rhs = np.concatenate([[lp["free_mass"]], np.zeros(n), lp["caps"], bound])
+        return (rows, cols, vals, rhs, side_row[kept_i, kept_s].astype(np.int64),
+                (2 * lp["cluster"][kept_i] + kept_s).astype(np.int64))
+
+    def _clarabel_settings(self):
+        clarabel = _import("clarabel")
+        settings = clarabel.DefaultSettings()
+        settings.verbose = False
+        settings.presolve_enable = False  # keep every row so that update(q=...) stays allowed
+        settings.max_threads = 1  # parallelism comes from solving several LPs at once
+        for name, value in self.settings.items():
+            setattr(settings, name, value)
+        return settings
+
+    def _clarabel_block(self, part):
+        """One Clarabel problem for the LPs ``part`` stacked block-diagonally (equalities first)."""
+        import scipy.sparse as sp
+
+        clarabel = _import("clarabel")
+        pieces = [self._conic(p) for p in part]
+        n_eq = len(pieces)
+        sizes = [self._lps[p]["caps"].size for p in part]
+        var_off = np.concatenate([[0], np.cumsum(sizes)])
+        ineq_off = n_eq + np.concatenate([[0], np.cumsum([pc[3].size - 1 for pc in pieces])])
+        place = lambda i, r: np.where(r == 0, i, ineq_off[i] + r - 1)
+        rows = np.concatenate([place(i, pc[0]) for i, pc in enumerate(pieces)])
+        cols = np.concatenate([var_off[i] + pc[1] for i, pc in enumerate(pieces)])
+        vals = np.concatenate([pc[2] for pc in pieces])
+        m, n = int(ineq_off[-1]), int(var_off[-1])
+        b = np.empty(m)
+        for i, pc in enumerate(pieces):
+            b[place(i, np.arange(pc[3].size))] = pc[3]
+        A = sp.csc_matrix((vals, (rows, cols)), shape=(m, n))
+        cones = [clarabel.ZeroConeT(n_eq), clarabel.NonnegativeConeT(m - n_eq)]
+        solver = clarabel.DefaultSolver(sp.csc_matrix((n, n)), np.zeros(n), A, b, cones, self._clarabel_settings())
+        # where each variable's cost comes from (block position, column), and the multiplier rows
+        cost_pos = np.concatenate([np.full(sz, i) for i, sz in enumerate(sizes)]).astype(np.int64)
+        cost_col = np.concatenate([self._lps[p]["cost_src"] for p in part])
+        z_rows = np.concatenate([place(i, pc[4]) for i, pc in enumerate(pieces)]).astype(np.int64)
+        z_pos = np.concatenate([np.full(pc[5].size, i) for i, pc in enumerate(pieces)]).astype(np.int64)
+        z_target = np.concatenate([pc[5] for pc in pieces])
+        return dict(solver=solver, count=len(part), cost_pos=cost_pos, cost_col=cost_col, z_rows=z_rows,
+                    z_pos=z_pos, z_target=z_target)
+
+    def _highs_lp(self, p):
+        """LP ``p`` as a ``HighsLp``: bounds on the variables, ranged rows (equality first)."""
+        highspy = _import("highs")
+        lp_data = self._lps[p]
+        n, k = lp_data["caps"].size, lp_data["cluster"].size
+        lp = highspy.HighsLp()
+        lp.num_col_, lp.num_row_ = n, 1 + k
+        lp.col_cost_ = np.zeros(n)
+        lp.col_lower_, lp.col_upper_ = np.zeros(n), lp_data["caps"]
+        lp.row_lower_ = np.concatenate([[lp_data["free_mass"]], lp_data["lo"]])
+        lp.row_upper_ = np.concatenate([[lp_data["free_mass"]], lp_data["hi"]])
+        lp.a_matrix_.format_ = highspy.MatrixFormat.kRowwise
+        lp.a_matrix_.start_ = np.concatenate([[0], n + lp_data["ptr"]]).astype(np.int32)
+        lp.a_matrix_.index_ = np.concatenate([np.arange(n), lp_data["var"]]).astype(np.int32)
+        lp.a_matrix_.value_ = np.ones(n + lp_data["var"].size)
+        return lp
+
+    def _highs_solver(self):
+        """The calling thread's ``Highs`` instance (one model at a time; bases are kept per LP)."""
+        h = getattr(self._local, "highs", None)
+        if h is None:
+            h = _import("highs").Highs()
+            h.setOptionValue("output_flag", False)
+            h.setOptionValue("threads", 1)
+            for name, value in self.settings.items():
+                h.setOptionValue(name, value)
+            self._local.highs = h
+        return h
+
+    def _solve_highs(self, p, direction, cost, out):
+        lp = self._cached(("lp", int(p)), lambda: self._highs_lp(p))
+        lp.col_cost_ = cost
+        h = self._highs_solver()
+        h.passModel(lp)
+        key = ("basis", direction, int(p))
+        basis = self._solvers.get(key)
+        if basis is not None:
+            h.setBasis(basis)
+        h.run()
+        self._solvers[key] = h.getBasis()
+        dual = np.asarray(h.getSolution().row_dual)[1:]
+        cluster = self._lps[p]["cluster"]
+        out[2 * cluster] = np.maximum(dual, 0.0)
+        out[2 * cluster + 1] = np.maximum(-dual, 0.0)
+        return h.modelStatusToString(h.getModelStatus())
+
+    def _cached(self, key, make):
+        value = self._solvers.get(key)
+        if value is None:
+            start = time.perf_counter()
+            value = make()
+            with self._lock:
+                value = self._solvers.setdefault(key, value)
+                self.stats["setup_seconds"] += time.perf_counter() - start
+        return value
+
+    def _clarabel_single(self, p):
+        """A Clarabel solver of LP ``p``: kept for the first ``max_cached_solvers`` LPs, otherwise
+        rebuilt from the cached matrices at every call (a solver holds ~0.5 MB at 30x30)."""
+        key = ("clarabel", int(p))
+        block = self._solvers.get(key)
+        if block is not None:
+            return block
+        if self._cached_solvers < self.max_cached_solvers:
+            with self._lock:
+                self._cached_solvers += 1
+            return self._cached(key, lambda: self._clarabel_block([p]))
+        start = time.perf_counter()
+        block = self._clarabel_block([p])
+        with self._lock:
+            self.stats["setup_seconds"] += time.perf_counter() - start
+        return block
+
+    def _plan(self, ids):
+        """Stacked Clarabel problems for the LPs ``ids`` (cached, least recently used dropped)."""
+        key = ids.tobytes()
+        with self._lock:
+            if key in self._plans:
+                self._plans.move_to_end(key)
+                return self._plans[key]
+        start = time.perf_counter()
+        starts = range(0, ids.size, self.block_size)
+        blocks = [(lo, self._clarabel_block(ids[lo:lo + self.block_size])) for lo in starts]
+        with self._lock:
+            self.stats["setup_seconds"] += time.perf_counter() - start
+            self._plans[key] = blocks
+            while len(self._plans) > self._cache_size:
+                self._plans.popitem(last=False)
+        return blocks
+
+    # -- per call -----------------------------------------------------------------------------
+    def cost_table(self, w: np.ndarray, ids: np.ndarray) -> np.ndarray:
+        """``(Q, cost_width)``: costs of the listed slots, then of the cheapest unlisted states."""
+        n_states, width = self.num_states, self.width
+        succ = self.succ[ids]
+        listed = succ < n_states
+        table = np.zeros((ids.size, self.cost_width))
+        table[:, :width] = np.where(listed, w[np.minimum(succ, n_states - 1)], 0.0)
+        need = int(self.buckets[ids].max(initial=0)) + 1
+        if self.rest > 0 and np.any(self.buckets[ids] + self.has_rest[ids] > 0):
+            order = np.argsort(w, kind="stable")
+            rank = np.empty(n_states, np.int64)
+            rank[order] = np.arange(n_states)
+            pad = 4 * n_states + np.arange(width)  # keeps lr[i] - i nondecreasing over the padding
+            lr = np.sort(np.where(listed, rank[np.minimum(succ, n_states - 1)], pad), axis=1)
+            # the j-th cheapest unlisted state sits at global position j + #{i : lr[i] - i <= j};
+            # one searchsorted over all rows, each row offset by `big`
+            big = 8 * n_states
+            keys = (lr - np.arange(width) + big * np.arange(ids.size)[:, None]).ravel()
+            queries = np.arange(need) + big * np.arange(ids.size)[:, None]
+            counts = np.searchsorted(keys, queries.ravel(), side="right").reshape(ids.size, need)
+            counts -= width * np.arange(ids.size)[:, None]
+            pos = np.minimum(np.arange(need) + counts, n_states - 1)
+            table[:, width:width + need] = w[order[pos]]
+        return table
+
+    def multipliers(self, w, ids, direction: int = 0):
+        """Nonnegative multipliers ``(*ids.shape, J, 2)`` (lambda+, lambda-) of the surrogate LPs
+        ``ids`` for costs ``w (N+1,)``; 0 for constraint sides not in the LP. ``direction`` (0:
+        minimizing adversary, 1: maximizing) only selects which HiGHS warm start to use."""
+        w = np.asarray(w, np.float64)
+        shape = np.shape(ids)
+        ids = np.ascontiguousarray(np.asarray(ids, np.int64).ravel())
+        lam = np.zeros((ids.size, self.num_clusters, 2))
+        if self.num_clusters == 0 or ids.size == 0:
+            return lam.reshape(*shape, self.num_clusters, 2)
+        costs = self.cost_table(w, ids)
+        flat = lam.reshape(ids.size, -1)
+        start = time.perf_counter()
+
+        if self.backend == "highs":
+            def run(i):
+                return self._solve_highs(ids[i], direction, costs[i, self._lps[ids[i]]["cost_src"]], flat[i])
+            tasks = range(ids.size)
+        elif self.block_size == 1:
+            def run(i):
+                return self._solve_clarabel(self._clarabel_single(ids[i]), costs[i:i + 1], flat[i:i + 1])
+            tasks = range(ids.size)
+        else:
+            plan = self._plan(ids)
+
+            def run(task):
+                lo, block = task
+                return self._solve_clarabel(block, costs[lo:lo + block["count"]], flat[lo:lo + block["count"]])
+            tasks = plan
+
+        tasks = list(tasks)
+        if self.threads > 1 and len(tasks) > 1 and np.unique(ids).size == ids.size:
+            share = lambda t: [run(task) for task in tasks[t::self.threads]]
+            statuses = [s for part in self._pool().map(share, range(self.threads)) for s in part]
+        else:
+            statuses = [run(task) for task in tasks]
+        self.stats.update(statuses)
+        self.stats["solve_seconds"] += time.perf_counter() - start
+        self.stats["calls"] += 1
+        return lam.reshape(*shape, self.num_clusters, 2)
+
+    @staticmethod
+    def _solve_clarabel(block, costs, out):
+        solver = block["solver"]
+        solver.update(q=costs[block["cost_pos"], block["cost_col"]])
+        sol = solver.solve()
+        z = np.asarray(sol.z)
+        out[block["z_pos"], block["z_target"]] = np.maximum(z[block["z_rows"]], 0.0)
+        return str(sol.status)
+
+    def reset(self):
+        """Drop every solver, model and warm start (the next call sets them up again)."""
+        with self._lock:
+            self._plans.clear()
+            self._solvers.clear()
+            self._cached_solvers = 0
+            self._local = threading.local()
+
+    def _pool(self):
+        with self._lock:
+            if self._executor is None:
+                from concurrent.futures import ThreadPoolExecutor
+
+                self._executor = ThreadPoolExecutor(self.threads, thread_name_prefix="mimdp-lp")
+            return self._executor
+
+    def __repr__(self):
+        return (f"ClusterLPs({self.num_lps} LPs, backend={self.backend}, vars <= {int(self.num_vars.max(initial=0))}, "
+                f"cluster sides <= {int(self.num_cluster_rows.max(initial=0))}, threads={self.threads})")
+
+
+def _import(backend: str):
+    try:
+        if backend == "highs":
+            import highspy as module
+        else:
+            import clarabel as module
+    except ImportError as err:  # pragma: no cover - depends on the environment
+        package = "highspy" if backend == "highs" else "clarabel"
+        raise ImportError(f"the MI-MDP LP backend {backend!r} needs the {package!r} package: "
+                          f"pip install {package}") from err
+    return module

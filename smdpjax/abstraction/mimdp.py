@@ -1,0 +1,434 @@
+"""Multi-interval MDP abstraction (Definition 5) with informed clusters, and its inner problem.
+
+Ambiguity set of a row (s, a) (Definition 5, eq. Gamma_poly, as set up in Section 6.2):
+
+    Gamma^MI(s, a) = { gamma in Gamma^IMDP(s, a) : P_low(s,a,q) <= sum_{s' in q} gamma(s') <= P_up(s,a,q)
+                                                     for every cluster q of (s, a) },
+
+where Gamma^IMDP is the interval polytope of Lemma 1 (``relaxation``) and the clusters are the
+*informed* clusters q~_c (the states met by Reach(s, a, c), one per bounded noise cell c; the
+paper's Example 2), optionally extended by user-given clusters. Lemma 1 bounds a cluster by
+
+    P_low(s,a,q) = sum_c' 1(members(c') inside q) P_W(c'),
+    P_up(s,a,q)  = sum_c' 1(members(c') meets q)  P_W(c') + P_W(rest),
+
+with members(c') the states met by the (box enclosure of the) reachable set Reach(s, a, c'):
+they cover Reach(s, a, c'), so "inside" implies the reachable set lies inside the union of q,
+and a reachable set that meets q has a member in q. Both bounds are therefore sound. The
+remainder noise cell (unbounded W) reaches every state: it meets every cluster and lies inside
+none (short of q = S, which is never useful). Identical clusters of a row are kept once, and
+single-state clusters are dropped (they are the IMDP's own constraints).
+
+Gamma^MI is contained in Gamma^IMDP (so the IMDP's robust values bound the MI-MDP's from the
+safe side, which warm starts use) and contains Gamma^SMDP (Theorem 2).
+
+Inner problem (``q_values``) and why it is sound whatever the LP solver does
+------------------------------------------------------------------------------
+``min_{gamma in Gamma^MI} <gamma, w>`` is an LP. Write the cluster constraints as
+``lo <= M gamma <= up``. For *any* multipliers ``lambda+, lambda- >= 0`` and every feasible
+gamma, ``<lambda+, M gamma - lo> + <lambda-, up - M gamma> >= 0``, hence (weak duality)
+
+    <gamma, w> >= g(lambda) := <lambda+, lo> - <lambda-, up>
+                               + min_{gamma in Gamma^IMDP} <gamma, w - M^T (lambda+ - lambda-)>.
+
+The multipliers come from an LP solver on the CPU (Clarabel or HiGHS, ``lp.ClusterLPs``, through
+``jax.pure_callback``); negatives are clipped to 0, and values above ``multiplier_cap`` to the
+cap (which keeps float rounding bounded; any value in ``[0, cap]`` is valid). The result is also
+never below the IMDP value (lambda = 0 is valid too, so the larger of the two is returned).
+The last term is an interval problem whose listed successors carry a per-row modified cost
+(clusters only contain listed successors) while unlisted states keep ``w``; it is solved
+*exactly* in JAX by ``interval_min_rows``. So ``q_values(v, "min")`` never exceeds the true
+minimum over Gamma^MI (up to float rounding, see ``summands_per_backup``), and equals it when the
+multipliers are optimal. ``"max"`` applies the same to ``-v`` and negates: a valid *upper* bound
+of the maximum. Both directions are the conservative ones for the robust values.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._pytree import pytree_dataclass, static_field
+from .base import AbstractionMixin, check_adversary
+from .clusters import IndexBoxes, cluster_members, max_lengths
+from .grid_clusters import GridClusters
+from .imdp import IMDP, row_chunks
+from .lp import ClusterLPs
+
+_BOUND_ROWS_PER_CHUNK = 64
+
+
+@pytree_dataclass
+class MIMDP(AbstractionMixin):
+    """Attributes (J = clusters per row after deduplication, L = largest cluster, K = listed successors):
+        relaxation: the IMDP of the same reachable sets (Gamma^MI is inside its ambiguity sets).
+            Its successor lists also hold every member of a user-given cluster.
+        cluster_slots: ``(R, A, J, L)`` int16/int32 cluster members as positions in
+            ``relaxation.successors[r, a]``, padded with ``K``; a padding cluster is all padding.
+        cluster_lower, cluster_upper: ``(R, A, J)`` P_low, P_up of each cluster (0 and 1 on padding).
+        lp_index: ``(R, A)`` int32 index of each row's LP in the host-side solver cache ``lps``.
+        rows: ``(R,)`` int32 state index of each row (the non-terminal cells).
+        labels: ``(N + 1,)`` int8 state labels.
+        lps: host-side ``ClusterLPs`` (static; compared by identity).
+        multiplier_cap: multipliers are clipped to ``[0, multiplier_cap]`` (static).
+    """
+
+    relaxation: IMDP
+    cluster_slots: jax.Array
+    cluster_lower: jax.Array
+    cluster_upper: jax.Array
+    lp_index: jax.Array
+    rows: jax.Array
+    labels: jax.Array
+    lps: ClusterLPs = static_field()
+    multiplier_cap: float = static_field(default=4.0)
+    kind: str = static_field(default="mimdp")
+
+    @classmethod
+    def from_clusters(cls, grid, clusters: GridClusters, extra_clusters=None, *, lp_backend: str = "clarabel",
+                      block_size: int = 1, max_buckets: int = 16, multiplier_cap: float = 4.0,
+                      threads: int | None = None, solver_settings: dict | None = None) -> "MIMDP":
+        """MI-MDP with the informed clusters of ``clusters`` (plus ``extra_clusters``).
+
+        Args:
+            grid: the state grid.
+            clusters: reachable sets of every (row, action, noise cell) (``compute_grid_clusters``).
+            extra_clusters: optional user-given clusters, ``(R, A, E, L_e)`` integer state ids
+                (cells ``0..N-1``, sink ``N``) per row and action, padded with ``N + 1`` (or any
+                id > N); a cluster that is all padding is ignored. Their bounds follow the same
+                formula as the informed clusters'.
+            lp_backend: ``"clarabel"`` (interior point) or ``"highs"`` (simplex warm-started from
+                the previous call's basis; needs ``highspy``). See ``lp``. Soundness does not
+                depend on the choice.
+            block_size: LPs stacked block-diagonally into one Clarabel problem. 1 (no stacking)
+                was fastest on the 2-D unicycle at 12x12 and 30x30 (``benchmarks/mimdp_lp.py``):
+                a stacked problem needs as many interior-point iterations as its hardest block.
+                Stacking only paid off for tiny LPs (a few cluster constraints), where the
+                per-call overhead dominates.
+            max_buckets: bucket variables for the unlisted states in each LP (see ``lp``).
+            multiplier_cap: clip multipliers to ``[0, multiplier_cap]`` (bounds rounding).
+            threads: threads that solve LPs concurrently (Clarabel releases the GIL while it
+                solves); default ``min(8, os.cpu_count())``.
+            solver_settings: solver options to override (Clarabel settings attributes, e.g.
+                ``{"tol_gap_rel": 1e-7}``, or HiGHS option names).
+        """
+        n_cells = grid.num_cells
+        sentinel = n_cells + 1
+        boxes = clusters.boxes
+        num_rows, num_actions, _ = boxes.sink.shape
+        if extra_clusters is not None:
+            extra = np.asarray(extra_clusters)
+            if extra.ndim != 4 or extra.shape[:2] != (num_rows, num_actions):
+                raise ValueError(f"extra_clusters must have shape (R, A, E, L) = ({num_rows}, {num_actions}, E, L), "
+                                 f"got {extra.shape}")
+            if not np.issubdtype(extra.dtype, np.integer) or np.any(extra < 0):
+                raise ValueError("extra_clusters must hold nonnegative integer state ids (padding N + 1)")
+            extra = np.where(extra <= n_cells, extra, sentinel)
+        imdp = IMDP.from_clusters(grid, clusters)
+        prob = jnp.asarray(clusters.prob)
+        rest = float(clusters.prob_rest)
+        lengths = max_lengths(boxes)
+        members = np.concatenate([np.asarray(cluster_members(grid, part, lengths)) for part in row_chunks(boxes)])
+        members = np.where(members <= n_cells, members, sentinel)
+        informed_lo, informed_up = informed_cluster_bounds(boxes, prob, rest, grid.cells)
+
+        succ = np.asarray(imdp.successors)
+        lower = np.asarray(imdp.lower)
+        upper = np.asarray(imdp.upper)
+        cluster_ids, bounds_lo, bounds_up = members, np.asarray(informed_lo), np.asarray(informed_up)
+        if extra_clusters is not None:
+            succ, lower, upper = _extend_successors(succ, lower, upper, extra, rest, sentinel)
+            ex_lo, ex_up = member_cluster_bounds(members, extra, np.asarray(prob), rest, sentinel)
+            width = max(members.shape[-1], extra.shape[-1])
+            pad = lambda a: np.pad(a, [(0, 0)] * 3 + [(0, width - a.shape[-1])], constant_values=sentinel)
+            cluster_ids = np.concatenate([pad(members), pad(extra)], axis=2)
+            bounds_lo = np.concatenate([bounds_lo, ex_lo], axis=2)
+            bounds_up = np.concatenate([bounds_up, ex_up], axis=2)
+            imdp = dataclasses.replace(imdp, successors=jnp.asarray(succ, jnp.int32), lower=jnp.asarray(lower),
+                                       upper=jnp.asarray(upper))
+
+        slots = _slots_of(succ, cluster_ids, sentinel)
+        slots, clo, cup = _distinct_clusters(slots, bounds_lo, bounds_up, succ.shape[-1])
+        k = succ.shape[-1]
+        slots = slots.astype(np.int16 if k < np.iinfo(np.int16).max else np.int32)
+        flat = lambda a: a.reshape(num_rows * num_actions, *a.shape[2:])
+        lps = ClusterLPs(flat(succ), flat(lower), flat(upper), rest, flat(slots), flat(clo), flat(cup),
+                         grid.num_states, backend=lp_backend, block_size=block_size, max_buckets=max_buckets,
+                         settings=solver_settings, threads=threads or min(8, os.cpu_count() or 1))
+        lp_index = np.arange(num_rows * num_actions, dtype=np.int32).reshape(num_rows, num_actions)
+        return cls(relaxation=imdp, cluster_slots=jnp.asarray(slots), cluster_lower=jnp.asarray(clo),
+                   cluster_upper=jnp.asarray(cup), lp_index=jnp.asarray(lp_index), rows=imdp.rows,
+                   labels=imdp.labels, lps=lps, multiplier_cap=float(multiplier_cap))
+
+    # -- interface ----------------------------------------------------------------------------
+    @property
+    def num_actions(self) -> int:
+        return int(self.lp_index.shape[1])
+
+    @property
+    def num_clusters(self) -> int:
+        return int(self.cluster_slots.shape[2])
+
+    @property
+    def summands_per_backup(self) -> float:
+        # the interval part as in the IMDP, plus the cluster terms: lambda.lo, lambda.up and the
+        # modified costs (one multiplier per member), each term up to multiplier_cap in size
+        _, _, j, size = self.cluster_slots.shape
+        return self.relaxation.summands_per_backup + float(self.multiplier_cap * j * (size + 2) * 2)
+
+    def restrict(self, actions) -> "MIMDP":
+        """The single-action MI-MDP of a stationary strategy ``actions: (R,)``."""
+        pick = lambda a: jnp.take_along_axis(a, actions.reshape((-1, 1) + (1,) * (a.ndim - 2)), axis=1)
+        return dataclasses.replace(self, relaxation=self.relaxation.restrict(actions),
+                                   cluster_slots=pick(self.cluster_slots), cluster_lower=pick(self.cluster_lower),
+                                   cluster_upper=pick(self.cluster_upper), lp_index=pick(self.lp_index))
+
+    def q_values(self, v, adversary: str = "min", actions=None):
+        """Certified inner values (see the module docstring): for ``"min"`` a lower bound of
+        ``min_{Gamma^MI} <gamma, v>`` (exact when the LP multipliers are optimal), for ``"max"``
+        an upper bound of the maximum. ``(R, A)``, or ``(R,)`` with ``actions: (R,)``."""
+        minimize = check_adversary(adversary)
+        imdp = self.relaxation
+        arrays = (imdp.successors, imdp.lower, imdp.upper, self.cluster_slots, self.cluster_lower,
+                  self.cluster_upper, self.lp_index)
+        if actions is not None:
+            arrays = tuple(jnp.take_along_axis(a, actions.reshape((-1, 1) + (1,) * (a.ndim - 2)), axis=1)[:, 0]
+                           for a in arrays)
+        succ, lower, upper, slots, clo, cup, lp = arrays
+        w = v if minimize else -v
+        value = _certified_min(w, succ, lower, upper, imdp.upper_rest, slots, clo, cup,
+                               self.multipliers(w, lp, 0 if minimize else 1), self.multiplier_cap)
+        return value if minimize else -value
+
+    def multipliers(self, w, lp_index, direction: int = 0):
+        """``(*lp_index.shape, J, 2)`` multipliers (lambda+, lambda-) of the LPs for costs ``w``,
+        from the host solver (callable under ``jit``; ``direction`` 1 for the maximizing
+        adversary's LPs, which keep their own warm starts)."""
+        shape = jax.ShapeDtypeStruct((*lp_index.shape, self.num_clusters, 2), jnp.float64)
+        if self.num_clusters == 0:
+            return jnp.zeros(shape.shape, shape.dtype)
+        host = functools.partial(self.lps.multipliers, direction=int(direction))
+        return jax.pure_callback(host, shape, w, lp_index, vmap_method="sequential")
+
+    def __repr__(self):
+        r, a, j, size = self.cluster_slots.shape
+        k = self.relaxation.successors.shape[2]
+        return (f"MIMDP(|S|={self.num_states}, rows={r}, |A|={a}, max successors={k}, clusters per row={j}, "
+                f"max cluster size={size}, memory={self.nbytes / 1e6:.2f} MB)")
+
+
+# -- the certified inner value ------------------------------------------------------------------
+def certified_min(w, succ, lower, upper, upper_rest, slots, cluster_lower, cluster_upper, lam, cap=np.inf):
+    """The weak-duality bound ``g(lambda)`` of the module docstring, for every row.
+
+    Args:
+        w: ``(N+1,)`` costs.
+        succ, lower, upper: ``(..., K)`` the interval polytope (as in ``interval_min``).
+        upper_rest: upper bound of every unlisted state.
+        slots: ``(..., J, L)`` cluster members as positions in ``succ`` (padding ``>= K``).
+        cluster_lower, cluster_upper: ``(..., J)`` cluster bounds.
+        lam: ``(..., J, 2)`` multipliers (lambda+, lambda-); clipped to ``[0, cap]``.
+    Returns:
+        ``(...)`` lower bounds of ``min <gamma, w>`` over the MI-MDP polytope: the larger of
+        ``g(lambda)`` and ``g(0)`` (the IMDP value), both valid.
+    """
+    lam = jnp.clip(lam, 0.0, cap)
+    lam_plus, lam_minus = lam[..., 0], lam[..., 1]
+    mu = lam_plus - lam_minus
+    batch, k = succ.shape[:-1], succ.shape[-1]
+    rows = int(np.prod(batch)) if batch else 1
+    flat_slots = slots.reshape(rows, -1).astype(jnp.int32)
+    flat_index = jnp.where(flat_slots < k, jnp.arange(rows)[:, None] * k + flat_slots, rows * k)
+    per_member = jnp.broadcast_to(mu[..., None], slots.shape).reshape(rows, -1)
+    shift = jnp.zeros(rows * k, w.dtype).at[flat_index].add(per_member, mode="drop").reshape(*batch, k)
+    listed = succ < w.shape[0]
+    w_listed = jnp.where(listed, w.at[succ].get(mode="fill", fill_value=0.0) - shift, 0.0)
+    offset = jnp.sum(lam_plus * cluster_lower - lam_minus * cluster_upper, axis=-1)
+    bound = offset + interval_min_rows(w, w_listed, succ, lower, upper, upper_rest)
+    # lambda = 0 is valid too and gives the IMDP value: never return less (inexact multipliers)
+    plain = jnp.where(listed, w.at[succ].get(mode="fill", fill_value=0.0), 0.0)
+    return jnp.maximum(bound, interval_min_rows(w, plain, succ, lower, upper, upper_rest))
+
+
+_certified_min = jax.jit(certified_min, static_argnums=9)  # one compilation per shape, also eagerly
+
+
+def interval_min_rows(w, w_listed, succ, lower, upper, upper_rest):
+    """``min <gamma, cost>`` over the interval polytope, where listed successors cost ``w_listed``
+    (per row) and every unlisted state s costs ``w(s)``.
+
+    Args:
+        w: ``(N+1,)`` costs of the unlisted states (a listed state's entry is ignored).
+        w_listed: ``(..., K)`` costs of the listed successors.
+        succ, lower, upper: ``(..., K)`` listed successors (padding ``>= N+1``), bounds.
+        upper_rest: upper bound of every unlisted state (lower bound 0).
+
+    The greedy (fill the lower bounds, then pour the rest of the mass in increasing cost) stops
+    at a threshold cost tau: every item cheaper than tau is full, items at tau take what is left.
+    With ``mass(<= t)`` the mass placed by items of cost <= t, tau is the smallest item cost with
+    ``mass(<= tau) >= 1``. Items are the K listed successors and the unlisted states; one sorted
+    copy of ``w`` and its prefix sums count the unlisted ones with cost below t in O(log N) (all
+    states, minus the listed ones). Two bisections (over the sorted ``w`` and over the row's
+    sorted listed costs) find tau in O(K (log N + log K)) per row.
+    """
+    n = w.shape[0]
+    w_sorted = jnp.sort(w)
+    prefix = jnp.concatenate([jnp.zeros(1, w.dtype), jnp.cumsum(w_sorted)])
+    listed = succ < n
+    own = jnp.where(listed, w.at[succ].get(mode="fill", fill_value=0.0), 0.0)  # listed states' w
+    cost = jnp.where(listed, w_listed, 0.0)
+    lo = jnp.where(listed, lower, 0.0)
+    cap = jnp.where(listed, upper - lower, 0.0)
+    base = lo.sum(-1)
+
+    def mass(t, strict):
+        below = (cost < t[..., None]) if strict else (cost <= t[..., None])
+        own_below = (own < t[..., None]) if strict else (own <= t[..., None])
+        count = jnp.searchsorted(w_sorted, t, side="left" if strict else "right")
+        unlisted = count - jnp.sum(listed & own_below, axis=-1)
+        return base + jnp.sum(jnp.where(below, cap, 0.0), axis=-1) + upper_rest * unlisted
+
+    def smallest_enough(values, size):  # smallest index i with mass(<= values[i]) >= 1, or size
+        def step(_, bounds):
+            lo_i, hi_i = bounds
+            mid = (lo_i + hi_i) // 2
+            enough = mass(values(jnp.minimum(mid, size - 1)), False) >= 1.0
+            return jnp.where(enough, lo_i, mid + 1), jnp.where(enough, mid, hi_i)
+
+        zeros = jnp.zeros(base.shape, jnp.int32)
+        steps = int(np.ceil(np.log2(size + 1))) + 1
+        return jax.lax.fori_loop(0, steps, step, (zeros, zeros + size))[1]
+
+    j_star = smallest_enough(lambda j: w_sorted[j], n)
+    cost_sorted = jnp.sort(jnp.where(listed, cost, jnp.inf), axis=-1)
+    k = cost.shape[-1]
+    pick = lambda i: jnp.take_along_axis(cost_sorted, i[..., None], axis=-1)[..., 0]
+    i_star = smallest_enough(pick, k)
+    tau = jnp.minimum(jnp.where(j_star < n, w_sorted[jnp.minimum(j_star, n - 1)], jnp.inf),
+                      jnp.where(i_star < k, pick(jnp.minimum(i_star, k - 1)), jnp.inf))
+    tau = jnp.where(jnp.isfinite(tau), tau, jnp.maximum(w_sorted[-1], jnp.max(jnp.where(listed, cost, -jnp.inf), -1)))
+
+    below = cost < tau[..., None]
+    own_below = listed & (own < tau[..., None])
+    count = jnp.searchsorted(w_sorted, tau, side="left")
+    fill_listed = jnp.sum(jnp.where(below, cap * cost, 0.0), axis=-1)
+    fill_unlisted = upper_rest * (prefix[count] - jnp.sum(jnp.where(own_below, own, 0.0), axis=-1))
+    placed = mass(tau, True)
+    return (lo * cost).sum(-1) + fill_listed + fill_unlisted + jnp.maximum(1.0 - placed, 0.0) * tau
+
+
+# -- construction helpers -----------------------------------------------------------------------
+def informed_cluster_bounds(boxes: IndexBoxes, prob, rest, cells):
+    """P_low, P_up ``(R, A, C)`` of every informed cluster q_c = members(c), from index boxes.
+
+    ``members(c') inside q_c`` and ``members(c') meets q_c`` are decided per dimension on the
+    index intervals (cyclic ones on periodic dimensions; the same test is exact on flat ones) and
+    on the sink flags, in O(C^2 n) per row instead of comparing member lists.
+    """
+    cells = tuple(int(c) for c in np.asarray(cells))
+    prob = jnp.asarray(prob)
+    parts = [_box_bounds(part.start, part.length, part.sink, prob, rest, cells)
+             for part in row_chunks(boxes, _BOUND_ROWS_PER_CHUNK)]
+    return tuple(jnp.concatenate(p) for p in zip(*parts))
+
+
+@functools.partial(jax.jit, static_argnums=(5,))
+def _box_bounds(start, length, sink, prob, rest, cells):
+    n_cells = jnp.asarray(cells, jnp.int32)
+    # a: the reachable set c' (axis -2 after expansion), b: the cluster q_c (axis -3)
+    a0, la, sa = start[..., None, :, :], length[..., None, :, :], sink[..., None, :]
+    b0, lb, sb = start[..., :, None, :], length[..., :, None, :], sink[..., :, None]
+    empty_a = jnp.any(la == 0, axis=-1)
+    empty_b = jnp.any(lb == 0, axis=-1)
+    d_ab = jnp.mod(a0 - b0, n_cells)
+    d_ba = jnp.mod(b0 - a0, n_cells)
+    inside_dim = (lb >= n_cells) | ((la <= lb) & (d_ab + la <= lb))
+    meet_dim = (la >= n_cells) | (lb >= n_cells) | (d_ab < lb) | (d_ba < la)
+    grid_inside = empty_a | (~empty_b & jnp.all(inside_dim, axis=-1))
+    grid_meet = ~empty_a & ~empty_b & jnp.all(meet_dim, axis=-1)
+    inside = grid_inside & (~sa | sb)
+    meets = grid_meet | (sa & sb)
+    return inside.astype(prob.dtype) @ prob, meets.astype(prob.dtype) @ prob + rest
+
+
+def member_cluster_bounds(members, clusters, prob, rest, sentinel):
+    """P_low, P_up ``(R, A, E)`` of arbitrary clusters ``(R, A, E, L)`` (state ids, padding
+    ``sentinel``) from the member lists ``(R, A, C, K)`` of the reachable sets."""
+    lows, ups = [], []
+    for start in range(0, members.shape[0], _BOUND_ROWS_PER_CHUNK):
+        m = members[start:start + _BOUND_ROWS_PER_CHUNK]
+        q = clusters[start:start + _BOUND_ROWS_PER_CHUNK]
+        # hit[r, a, e, c, k]: member k of reachable set c lies in cluster e
+        hit = np.any(m[:, :, None, :, :, None] == np.where(q < sentinel, q, -1)[:, :, :, None, None, :], axis=-1)
+        real = (m < sentinel)[:, :, None]
+        inside = np.all(hit | ~real, axis=-1) & np.any(q < sentinel, axis=-1)[..., None]
+        meets = np.any(hit & real, axis=-1)
+        lows.append(inside @ prob)
+        ups.append(meets @ prob + rest)
+    return np.concatenate(lows), np.concatenate(ups)
+
+
+def _extend_successors(succ, lower, upper, extra, rest, sentinel):
+    """Add every member of the extra clusters to the successor lists (bounds ``[0, rest]``)."""
+    r, a, k = succ.shape
+    both = np.concatenate([succ, extra.reshape(r, a, -1)], axis=-1)
+    both = np.sort(both, axis=-1)
+    first = np.concatenate([np.ones_like(both[..., :1], bool), both[..., 1:] != both[..., :-1]], axis=-1)
+    first &= both < sentinel
+    width = max(int(first.sum(-1).max(initial=0)), 1)
+    order = np.argsort(~first, axis=-1, kind="stable")[..., :width]
+    new = np.where(np.take_along_axis(first, order, -1), np.take_along_axis(both, order, -1), sentinel)
+    slot = _slots_of(new, succ[..., None, :], sentinel)[..., 0, :]  # old slot -> new slot
+    new_lower = np.zeros(new.shape)
+    new_upper = np.where(new < sentinel, float(rest), 0.0)
+    rr, aa = np.meshgrid(np.arange(r), np.arange(a), indexing="ij")
+    keep = slot < width
+    new_lower[rr[..., None].repeat(k, -1)[keep], aa[..., None].repeat(k, -1)[keep], slot[keep]] = lower[keep]
+    new_upper[rr[..., None].repeat(k, -1)[keep], aa[..., None].repeat(k, -1)[keep], slot[keep]] = upper[keep]
+    return new.astype(np.int32), new_lower, new_upper
+
+
+def _slots_of(succ, ids, sentinel):
+    """Positions of the state ids ``(R, A, C, L)`` in the sorted successor lists ``(R, A, K)``
+    (``K`` for padding)."""
+    r, a, k = succ.shape
+    flat_succ = succ.reshape(r * a, k).astype(np.int64)
+    offset = (np.arange(r * a) * (sentinel + 1))[:, None]
+    keys = (flat_succ + offset).ravel()  # sorted: each row is sorted and rows are offset apart
+    q = ids.reshape(r * a, -1).astype(np.int64)
+    pos = np.searchsorted(keys, (q + offset).ravel()).reshape(q.shape) - np.arange(r * a)[:, None] * k
+    pos = np.clip(pos, 0, k - 1)
+    found = (q < sentinel) & (np.take_along_axis(flat_succ, pos, axis=1) == q)
+    if np.any((q < sentinel) & ~found):
+        raise AssertionError("a cluster member is missing from the successor list")
+    return np.where(found, pos, k).reshape(ids.shape)
+
+
+def _distinct_clusters(slots, lo, up, k):
+    """Drop clusters of at most one state and repeated clusters of a row; compact to ``J``."""
+    r, a, c, size = slots.shape
+    slots = np.sort(slots, axis=-1)
+    count = (slots < k).sum(-1)
+    flat = slots.reshape(r * a * c, size)
+    group = np.repeat(np.arange(r * a), c)
+    order = np.lexsort(tuple(flat[:, i] for i in range(size - 1, -1, -1)) + (group,))
+    s_sorted, g_sorted = flat[order], group[order]
+    repeat = np.zeros(flat.shape[0], bool)
+    repeat[1:] = (g_sorted[1:] == g_sorted[:-1]) & np.all(s_sorted[1:] == s_sorted[:-1], axis=1)
+    duplicate = np.zeros(flat.shape[0], bool)
+    duplicate[order] = repeat
+    keep = (count.ravel() >= 2) & ~duplicate
+    keep = keep.reshape(r, a, c)
+    j = int(keep.sum(-1).max(initial=0))
+    size_kept = int(np.where(keep, count, 0).max(initial=0))
+    pick = np.argsort(~keep, axis=-1, kind="stable")[..., :j]
+    kept = np.take_along_axis(keep, pick, -1)
+    slots = np.where(kept[..., None], np.take_along_axis(slots, pick[..., None], 2), k)[..., :max(size_kept, 1)]
+    lo = np.where(kept, np.take_along_axis(lo, pick, -1), 0.0)
+    up = np.where(kept, np.take_along_axis(up, pick, -1), 1.0)
+    return slots, lo, up

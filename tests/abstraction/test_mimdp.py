@@ -1,0 +1,332 @@
+"""MI-MDP abstraction (Definition 5 with informed clusters): bounds, inner problem, Theorem 2."""
+
+import cvxpy as cp
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.optimize import linprog
+
+import smdpjax as sj
+from smdpjax.abstraction import IMDP, SMDP, cluster_members, compute_grid_clusters
+from smdpjax.abstraction.clusters import max_lengths
+from smdpjax.abstraction.mimdp import MIMDP, interval_min_rows
+
+
+def q_values(abstraction, v, adversary="min"):
+    """``abstraction.q_values`` under jit (eager calls would retrace the loops every time)."""
+    return np.asarray(_q_values(abstraction, jnp.asarray(v), adversary))
+
+
+_q_values = jax.jit(lambda m, v, adversary: m.q_values(v, adversary), static_argnums=2)
+
+
+def unicycle(x, u, w):
+    return x + 0.1 * (jnp.array([jnp.cos(u[0]), jnp.sin(u[0])]) + w)
+
+
+def drift(x, u, w):  # bounded noise, and a periodic second coordinate
+    return x + jnp.array([0.05 * u[0], 0.37]) + jnp.array([0.1, 0.2]) * w
+
+
+def build(system, grid, noise, **options):
+    clusters = compute_grid_clusters(system, grid, noise)
+    return grid, clusters, MIMDP.from_clusters(grid, clusters, **options)
+
+
+@pytest.fixture(scope="module")
+def small_clusters():
+    """6x6 unicycle with a noise ball of radius 3 sigma: the remainder's mass (~5e-3 per state)
+    matters, so the unlisted states are exercised; plus random user-given clusters."""
+    system = sj.System(unicycle, actions=(np.arange(4) * np.pi / 2)[:, None], noise=sj.Gaussian([0.0, 0.0], [0.3, 0.3]))
+    grid = sj.StateGrid([0, 0], [1, 1], 6, reach=[([2 / 3, 2 / 3], [1.0, 1.0])], avoid=[([1 / 3, 1 / 3], [0.5, 0.5])])
+    noise = sj.NoiseGrid.ball([0.0, 0.0], 0.9, 3)
+    clusters = compute_grid_clusters(system, grid, noise)
+    rng = np.random.default_rng(3)
+    r, a = clusters.rows.size, system.num_actions
+    extra = np.full((r, a, 2, 5), grid.num_states)  # padding N + 1
+    for i in range(r):
+        for j in range(a):
+            for e in range(2):
+                size = rng.integers(2, 6)
+                extra[i, j, e, :size] = rng.choice(grid.num_states, size, replace=False)
+    extra[0, 0, 1] = grid.num_states  # an all-padding cluster is ignored
+    return grid, clusters, extra
+
+
+@pytest.fixture(scope="module")
+def small(small_clusters):
+    grid, clusters, extra = small_clusters
+    return grid, clusters, MIMDP.from_clusters(grid, clusters, extra_clusters=extra), extra
+
+
+@pytest.fixture(scope="module")
+def small_highs(small_clusters):
+    pytest.importorskip("highspy")
+    grid, clusters, extra = small_clusters
+    return grid, clusters, MIMDP.from_clusters(grid, clusters, extra_clusters=extra, lp_backend="highs"), extra
+
+
+@pytest.fixture(scope="module")
+def unicycle_12():
+    system = sj.System(unicycle, actions=(np.arange(4) * np.pi / 2)[:, None], noise=sj.Gaussian([0.0, 0.0], [0.3, 0.3]))
+    grid = sj.StateGrid([0, 0], [1, 1], 12, reach=[([0.75, 0.75], [1.0, 1.0])], avoid=[([0.4, 0.25], [0.6, 0.6])])
+    return build(system, grid, sj.NoiseGrid.ball([0.0, 0.0], 2.1, 6))
+
+
+@pytest.fixture(scope="module")
+def bounded():
+    system = sj.System(drift, actions=[[-1.0], [1.0]], noise=sj.Uniform([-1.0, -1.0], [1.0, 1.0]))
+    grid = sj.StateGrid([0, 0], [1, 1], [8, 5], reach=[([0.75, 0.0], [1.0, 0.2])], periodic=[False, True])
+    return build(system, grid, sj.NoiseGrid.box([-1.0, -1.0], [1.0, 1.0], 3))
+
+
+# -- helpers ---------------------------------------------------------------------------------
+def row_data(mimdp, r, a):
+    """Per-state bounds ``(N+1,)`` and the clusters ``[(state ids, lo, up)]`` of row (r, a)."""
+    imdp, n = mimdp.relaxation, mimdp.num_states
+    rest = float(imdp.upper_rest)
+    succ = np.asarray(imdp.successors[r, a])
+    keep = succ < n
+    lo, hi = np.zeros(n), np.full(n, rest)
+    lo[succ[keep]] = np.asarray(imdp.lower[r, a])[keep]
+    hi[succ[keep]] = np.asarray(imdp.upper[r, a])[keep]
+    clusters = []
+    for slots, clo, cup in zip(np.asarray(mimdp.cluster_slots[r, a]), np.asarray(mimdp.cluster_lower[r, a]),
+                               np.asarray(mimdp.cluster_upper[r, a])):
+        slots = slots[slots < succ.size]
+        if slots.size:
+            clusters.append((succ[slots], float(clo), float(cup)))
+    return lo, hi, clusters
+
+
+def in_gamma_mi(mimdp, r, a, gamma, tol=1e-12):
+    """Membership of ``gamma (N+1,)`` in Gamma^MI of row (r, a), from the stored arrays."""
+    lo, hi, clusters = row_data(mimdp, r, a)
+    ok = abs(gamma.sum() - 1) <= tol and np.all(gamma >= lo - tol) and np.all(gamma <= hi + tol)
+    return bool(ok and all(clo - tol <= gamma[ids].sum() <= cup + tol for ids, clo, cup in clusters))
+
+
+def reference_lps(mimdp):
+    """CVXPY problems over all N+1 states with every constraint written out, one per (r, a)."""
+    cost = cp.Parameter(mimdp.num_states)
+    problems = {}
+    for r in range(mimdp.num_rows):
+        for a in range(mimdp.num_actions):
+            lo, hi, clusters = row_data(mimdp, r, a)
+            member = np.zeros((len(clusters), mimdp.num_states))
+            for j, (ids, _, _) in enumerate(clusters):
+                member[j, ids] = 1.0
+            clo = np.array([c[1] for c in clusters])
+            cup = np.array([c[2] for c in clusters])
+            g = cp.Variable(mimdp.num_states)
+            cons = [cp.sum(g) == 1, g >= lo, g <= hi, member @ g >= clo, member @ g <= cup]
+            problems[r, a] = cp.Problem(cp.Minimize(cost @ g), cons)
+    return cost, problems
+
+
+def vertex_reference(mimdp, r, a, w):
+    """The same LP by HiGHS dual simplex with tight tolerances: a vertex, feasible to ~1e-10 (so not
+    below the true minimum by more than that times the values' range) and usually to rounding."""
+    lo, hi, clusters = row_data(mimdp, r, a)
+    member = np.zeros((len(clusters), mimdp.num_states))
+    for j, (ids, _, _) in enumerate(clusters):
+        member[j, ids] = 1.0
+    res = linprog(w, A_ub=np.vstack([member, -member]), b_ub=np.r_[[c[2] for c in clusters], [-c[1] for c in clusters]],
+                  A_eq=np.ones((1, mimdp.num_states)), b_eq=[1.0], bounds=list(zip(lo, hi)), method="highs-ds",
+                  options=dict(primal_feasibility_tolerance=1e-10, dual_feasibility_tolerance=1e-10))
+    assert res.status == 0
+    return res.fun
+
+
+def solve_reference(cost, problems, w):
+    cost.value = np.asarray(w)
+    out = {}
+    for key, prob in problems.items():
+        prob.solve(solver=cp.CLARABEL, tol_gap_abs=1e-11, tol_gap_rel=1e-11, tol_feas=1e-11)
+        assert prob.status == cp.OPTIMAL
+        out[key] = prob.value
+    return out
+
+
+# -- the inner problem -----------------------------------------------------------------------
+@pytest.mark.parametrize("rest", [0.0, 1e-3, 0.02])
+def test_interval_min_rows_matches_lp(rest):
+    rng = np.random.default_rng(11 + int(rest * 1e4))
+    n, k, rows = 40, 9, 120
+    succ = np.stack([rng.choice(n, k, replace=False) for _ in range(rows)])
+    lower = rng.uniform(0, 1, (rows, k)) * rng.integers(0, 2, (rows, k))
+    lower *= rng.uniform(0.2, 0.9, (rows, 1)) / np.maximum(lower.sum(1, keepdims=True), 1e-12)
+    upper = lower + rng.uniform(0, 0.4, (rows, k)) + rest
+    upper *= np.maximum(1.0, (1 - (n - k) * rest) / upper.sum(1, keepdims=True) + 0.05)
+    w = rng.choice([0.0, 0.5, 1.0], n) if rest == 0.02 else rng.uniform(0, 1, n)  # ties too
+    w_listed = w[succ] + rng.choice([0.0, 0.3, -0.7], (rows, k))  # per-row costs, some equal to w
+    pad = np.full((rows, 2), n + 1)
+    got = np.asarray(interval_min_rows(jnp.asarray(w), jnp.asarray(np.c_[w_listed, 0 * pad]),
+                                       jnp.asarray(np.c_[succ, pad]),
+                                       jnp.asarray(np.c_[lower, 0 * pad]), jnp.asarray(np.c_[upper, 0 * pad]), rest))
+    for i in range(rows):
+        c, lo, hi = w.copy(), np.zeros(n), np.full(n, rest)
+        c[succ[i]], lo[succ[i]], hi[succ[i]] = w_listed[i], lower[i], upper[i]
+        res = linprog(c, A_eq=np.ones((1, n)), b_eq=[1.0], bounds=list(zip(lo, hi)), method="highs")
+        assert res.status == 0
+        assert got[i] == pytest.approx(res.fun, abs=1e-9)
+
+
+@pytest.mark.parametrize("case", ["small", "small_highs"])
+def test_q_values_equal_reference_lp(case, request):
+    grid, clusters, mimdp, _ = request.getfixturevalue(case)
+    cost, problems = reference_lps(mimdp)
+    rng = np.random.default_rng(0)
+    for trial in range(2):
+        v = rng.uniform(0, 1, grid.num_states) if trial else rng.choice([0.0, 0.4, 1.0], grid.num_states)
+        q_min = q_values(mimdp, v, "min")
+        q_max = q_values(mimdp, v, "max")
+        ref_min = solve_reference(cost, problems, v)
+        ref_max = {key: -val for key, val in solve_reference(cost, problems, -v).items()}
+        for (r, a), val in ref_min.items():
+            assert q_min[r, a] == pytest.approx(val, abs=1e-6)
+            assert q_max[r, a] == pytest.approx(ref_max[r, a], abs=1e-6)
+            # certified: never above the minimum / below the maximum. The interior-point
+            # reference is itself only accurate to ~1e-11, so this is checked against vertex
+            # solutions of the same LPs.
+            assert q_min[r, a] <= vertex_reference(mimdp, r, a, v) + 1e-12
+            assert q_max[r, a] >= -vertex_reference(mimdp, r, a, -v) - 1e-12
+    # the clusters do cut: some rows are strictly tighter than the IMDP
+    q_imdp = q_values(mimdp.relaxation, v, "min")
+    assert np.max(q_min - q_imdp) > 1e-3
+
+
+def test_certificate_is_sound_for_any_multipliers(small):
+    """Weak duality: garbage multipliers still give a lower bound (never above the LP value)."""
+    grid, _, mimdp, _ = small
+    from smdpjax.abstraction.mimdp import certified_min
+    imdp = mimdp.relaxation
+    v = jnp.asarray(np.random.default_rng(5).uniform(0, 1, grid.num_states))
+    exact = q_values(mimdp, v, "min")
+    bound = jax.jit(certified_min, static_argnums=9)
+    for seed in range(3):
+        lam = jnp.asarray(np.random.default_rng(seed).exponential(0.5, mimdp.cluster_slots.shape[:3] + (2,)))
+        g = np.asarray(bound(v, imdp.successors, imdp.lower, imdp.upper, imdp.upper_rest,
+                                     mimdp.cluster_slots, mimdp.cluster_lower, mimdp.cluster_upper, lam, 10.0))
+        assert np.all(g <= exact + 1e-9)
+
+
+# -- bounds of the clusters ------------------------------------------------------------------
+@pytest.mark.parametrize("case", ["small", "bounded"])
+def test_cluster_bounds_brute_force(case, request):
+    data = request.getfixturevalue(case)
+    grid, clusters, mimdp = data[:3]
+    extra = data[3] if len(data) > 3 else None
+    members = np.asarray(cluster_members(grid, clusters.boxes, max_lengths(clusters.boxes)))
+    prob, rest = np.asarray(clusters.prob), float(clusters.prob_rest)
+    n = grid.num_states
+    for r in range(mimdp.num_rows):
+        for a in range(mimdp.num_actions):
+            reach = [frozenset(int(s) for s in m if s < n) for m in members[r, a]]
+            wanted = set(reach)
+            if extra is not None:
+                wanted |= {frozenset(int(s) for s in e if s < n) for e in extra[r, a]}
+            wanted = {q for q in wanted if len(q) >= 2}
+            _, _, stored = row_data(mimdp, r, a)
+            got = {frozenset(ids.tolist()): (lo, up) for ids, lo, up in stored}
+            assert len(got) == len(stored), "a cluster is stored twice"
+            assert set(got) == wanted
+            for q, (lo, up) in got.items():
+                assert lo == pytest.approx(sum(p for m, p in zip(reach, prob) if m <= q), abs=1e-12)
+                assert up == pytest.approx(sum(p for m, p in zip(reach, prob) if m & q) + rest, abs=1e-12)
+
+
+def test_extra_clusters_are_validated(small_clusters):
+    grid, clusters, extra = small_clusters
+    with pytest.raises(ValueError, match="shape"):
+        MIMDP.from_clusters(grid, clusters, extra_clusters=extra[:, :, 0])
+    with pytest.raises(ValueError, match="nonnegative"):
+        MIMDP.from_clusters(grid, clusters, extra_clusters=extra - grid.num_states)
+
+
+# -- Theorem 2: Gamma^SMDP inside Gamma^MI inside Gamma^IMDP ---------------------------------
+@pytest.mark.parametrize("case", ["unicycle_12", "bounded"])
+def test_theorem2_ordering(case, request):
+    grid, clusters, mimdp = request.getfixturevalue(case)
+    smdp, imdp = SMDP.from_clusters(grid, clusters), IMDP.from_clusters(grid, clusters)
+    rng = np.random.default_rng(1)
+    tighter = 0.0
+    for _ in range(1 if case == "unicycle_12" else 2):
+        v = jnp.asarray(rng.uniform(0, 1, grid.num_states))
+        s, m, i = (q_values(x, v, "min") for x in (smdp, mimdp, imdp))
+        assert np.all(s >= m - 1e-9) and np.all(m - 1e-9 >= i - 2e-9)
+        tighter = max(tighter, float(np.max(m - i)))
+        s, m, i = (q_values(x, v, "max") for x in (smdp, mimdp, imdp))
+        assert np.all(s <= m + 1e-9) and np.all(m + 1e-9 <= i + 2e-9)
+    assert tighter > 1e-3
+
+
+# -- the paper's Example 3 -------------------------------------------------------------------
+def test_example3_spurious_distribution():
+    """Example 3 (s3 of Examples 1-2 split in two). A uniform grid cannot split one region only,
+    so the example is reconstructed in 1-D with the same clusters: seven unit cells, and
+    Reach(s1, a, c_i) (w ~ U[-1, 1], five cells) meets the cells {1,2}, {2,3',3''}, {3',3'',4},
+    {4,5}, {5,6} (paper numbering s1, s2, s3', s3'', s4, s5, s6 = cells 0..6)."""
+    system = sj.System(lambda x, u, w: 0.2 * x + 3.5 + 3.0 * w, actions=[[0.0]], noise=sj.Uniform([-1.0], [1.0]))
+    grid = sj.StateGrid([0.0], [7.0], [7])
+    noise = sj.NoiseGrid.box([-1.0], [1.0], 5)
+    grid, clusters, mimdp = build(system, grid, noise)
+    smdp, imdp = SMDP.from_clusters(grid, clusters), IMDP.from_clusters(grid, clusters)
+    assert int(mimdp.rows[0]) == 0  # row 0 is s1
+    _, _, stored = row_data(mimdp, 0, 0)
+    got = {tuple(sorted(ids.tolist())): (lo, up) for ids, lo, up in stored}
+    expect = {(0, 1): (0.2, 0.4), (1, 2, 3): (0.2, 0.6), (2, 3, 4): (0.2, 0.6), (4, 5): (0.2, 0.6), (5, 6): (0.2, 0.4)}
+    assert set(got) == set(expect)
+    for key, bounds in expect.items():
+        np.testing.assert_allclose(got[key], bounds, atol=1e-12)
+
+    gamma = np.zeros(grid.num_states)
+    gamma[[0, 2, 5]] = 0.2  # s1, s3', s5
+    gamma[3] = 0.4  # s3''
+    assert in_gamma_mi(mimdp, 0, 0, gamma)
+    # Every SMDP distribution puts at most P(c2) + P(c3) = 2/5 on {s3', s3''}: only those two
+    # reachable sets meet them. gamma puts 3/5 there, so it is not in Gamma^SMDP.
+    v = jnp.ones(grid.num_states).at[jnp.array([2, 3])].set(0.0)
+    q_smdp, q_mimdp, q_imdp = (float(q_values(x, v, "min")[0, 0]) for x in (smdp, mimdp, imdp))
+    assert q_smdp == pytest.approx(0.6)
+    assert float(v @ gamma) == pytest.approx(0.4) and float(v @ gamma) < q_smdp - 0.1
+    assert q_mimdp == pytest.approx(0.4, abs=1e-7)  # gamma is the MI-MDP's minimizer
+    assert q_imdp == pytest.approx(0.2)  # the IMDP may even put 4/5 there
+
+
+# -- JAX integration -------------------------------------------------------------------------
+def test_jit_while_loop_and_restrict(small):
+    grid, _, mimdp, _ = small
+    rows = mimdp.rows
+    v0 = mimdp.initial_values()
+
+    def body(state):
+        k, v = state
+        return k + 1, v.at[rows].set(mimdp.q_values(v, "min").max(axis=1))
+
+    _, v_loop = jax.jit(lambda v: jax.lax.while_loop(lambda s: s[0] < 3, body, (0, v)))(v0)
+    v_ref = v0
+    for _ in range(3):
+        v_ref = v_ref.at[rows].set(q_values(mimdp, v_ref, "min").max(axis=1))
+    np.testing.assert_allclose(np.asarray(v_loop), np.asarray(v_ref), atol=1e-12)
+
+    v = v_loop.at[rows].set(jnp.asarray(np.random.default_rng(4).uniform(0, 1, rows.size)))
+    actions = jnp.asarray(np.random.default_rng(2).integers(0, mimdp.num_actions, mimdp.num_rows), jnp.int32)
+    fixed = mimdp.restrict(actions)
+    assert fixed.num_actions == 1
+    picked = np.asarray(jax.jit(lambda m, x, act: m.q_values(x, "max", act))(mimdp, v, actions))  # traced actions
+    np.testing.assert_allclose(q_values(fixed, v, "max")[:, 0], picked, atol=1e-12)
+    full = q_values(mimdp, v, "max")
+    np.testing.assert_allclose(picked, full[np.arange(mimdp.num_rows), np.asarray(actions)], atol=1e-7)
+
+
+def test_pytree_leaves_and_repr(small):
+    _, _, mimdp, _ = small
+    leaves = jax.tree_util.tree_leaves(mimdp)
+    assert any(leaf is mimdp.relaxation.successors for leaf in leaves)
+    assert mimdp.nbytes > mimdp.relaxation.nbytes
+    assert mimdp.summands_per_backup > mimdp.relaxation.summands_per_backup
+    assert "MIMDP(" in repr(mimdp) and mimdp.kind == "mimdp"
+    fixed = mimdp.restrict(jnp.zeros(mimdp.num_rows, jnp.int32))
+    assert fixed.lps is mimdp.lps and fixed.lp_index.shape == (mimdp.num_rows, 1)
