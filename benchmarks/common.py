@@ -16,7 +16,14 @@ import smdpjax as sj
 
 
 def timed(fn, repeats: int):
-    """Run ``fn`` ``repeats`` times (after one warm-up that compiles); return (result, [seconds])."""
+    """Run ``fn`` ``repeats`` times (after one warm-up that compiles); return (result, [seconds]).
+
+    ``repeats=0`` times the single first call, compilation included (for stages too slow to repeat).
+    """
+    if repeats == 0:
+        start = time.perf_counter()
+        result = jax.block_until_ready(fn())
+        return result, [time.perf_counter() - start]
     result = jax.block_until_ready(fn())
     times = []
     for _ in range(repeats):

@@ -39,7 +39,10 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--kinds", default=",".join(sj.KINDS), help="comma-separated abstraction classes")
     parser.add_argument("--cells", type=int, default=30, help="grid cells per dimension")
-    parser.add_argument("--repeats", type=int, default=3, help="timed runs per stage (median reported)")
+    parser.add_argument("--repeats", type=int, default=3,
+                        help="timed runs per stage after a warm-up (median reported); 0: time the first run")
+    parser.add_argument("--lp-backend", default="clarabel", choices=("clarabel", "highs"),
+                        help="LP solver for the MI-MDP's multipliers")
     parser.add_argument("--initial", type=int, default=100, help="initial cells |S_0|")
     parser.add_argument("--trajectories", type=int, default=1000, help="Monte Carlo runs per initial cell")
     parser.add_argument("--tol", type=float, default=1e-6)
@@ -51,7 +54,8 @@ def main(argv=None):
     cells = sj.metrics.initial_cells(grid, args.initial, seed=0)
     rows = []
     for kind in args.kinds.split(","):
-        abstraction, t_abs = timed(lambda: sj.abstract(system, grid, noise, kind), args.repeats)
+        options = {"lp_backend": args.lp_backend} if kind == "mimdp" else {}
+        abstraction, t_abs = timed(lambda: sj.abstract(system, grid, noise, kind, **options), args.repeats)
         solution, t_syn = timed(lambda: sj.synthesize(abstraction, tol=args.tol), args.repeats)
         p_low, p_up = sj.metrics.average_bounds(solution, cells)
         sat, undecided = monte_carlo(system, grid, solution, cells, args.trajectories, seed=7, max_steps=1000)
@@ -77,6 +81,10 @@ def main(argv=None):
               f"{r['iterations']:4d}+{r['evaluation_iterations']:<4d} {r['p_low_avg']:6.3f} {r['p_up_avg']:6.3f} "
               f"{r['p_mc_avg']:6.3f}  {'yes' if r['mc_in_bounds'] else 'NO'} (avg, +-{r['mc_tolerance']:.4f}); "
               f"per cell: {'yes' if r['mc_per_cell_in_bounds'] else 'NO'}")
+    if args.out.exists():  # keep rows of other classes from earlier runs
+        import json
+        earlier = [r for r in json.loads(args.out.read_text()).get("rows", []) if r["kind"] not in args.kinds.split(",")]
+        rows = earlier + rows
     write_json(args.out, {"benchmark": "core_2d", "args": {k: str(v) for k, v in vars(args).items()},
                           "environment": environment(), "rows": rows})
     print(f"\nwrote {args.out}")
