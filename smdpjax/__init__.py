@@ -10,6 +10,8 @@ The pipeline, one subpackage per step of the paper ("Beyond Interval MDPs", Grac
 * ``synthesis``: robust dynamic programming (Proposition 1, Theorem 4), strategy and bounds.
 * ``simulation``: the refined controller and Monte Carlo validation (Theorem 5).
 * ``metrics``: e_avg, p_avg, memory, wall time (Section 7).
+* ``gradients``: derivatives of p_low in the noise law and partition (implicit differentiation).
+* ``sweep``: one vmapped synthesis over a batch of parameter values sharing a cluster structure.
 
 Importing smdpjax turns on JAX's float64 mode: reachable sets and probabilities are float64.
 """
@@ -18,7 +20,7 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-from . import abstraction, metrics, partition, reach, synthesis  # noqa: E402
+from . import abstraction, gradients, metrics, partition, reach, sweep, synthesis  # noqa: E402
 from .abstraction import IMDP, KINDS, MIMDP, SMDP, TwoLayerIMDP, abstract  # noqa: E402
 from .noise import Distribution, Gaussian, Uniform  # noqa: E402
 from .partition import AVOID, NONTERMINAL, REACH, NoiseGrid, StateGrid  # noqa: E402
@@ -31,5 +33,6 @@ __version__ = "0.1.0"
 __all__ = [
     "System", "Distribution", "Gaussian", "Uniform", "StateGrid", "NoiseGrid", "NONTERMINAL", "REACH", "AVOID",
     "abstract", "KINDS", "IMDP", "TwoLayerIMDP", "MIMDP", "SMDP", "synthesize", "verify", "Solution", "Controller", "simulate",
-    "SimulationResult", "uniform_in_cells", "abstraction", "metrics", "partition", "reach", "synthesis",
+    "SimulationResult", "uniform_in_cells", "abstraction", "gradients", "metrics", "partition", "reach", "sweep",
+    "synthesis",
 ]
