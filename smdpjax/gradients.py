@@ -87,6 +87,9 @@ class ClusterStructure:
         rows: ``(R,)`` int32 state index of each row (the non-terminal cells).
         labels: ``(N+1,)`` int8 state labels.
         width: successors per row of the IMDP built from it (static, so ``abstraction`` traces).
+
+    Pass it to jitted functions as an argument rather than closing over it: as a constant, XLA
+    would constant-fold the IMDP's sort of the member lists, which makes compiling slow.
     """
 
     members: jax.Array
@@ -261,7 +264,3 @@ def guarantee(structure: ClusterStructure, noise, edges, cells, *, remainder: bo
                          f"{structure.num_bounded}")
     return mean_lower(structure.abstraction(prob, rest, kind), cells, **solver_options)
 
-
-def replace_noise(system: System, noise) -> System:
-    """``system`` with another noise distribution (the structure does not depend on it)."""
-    return dataclasses.replace(system, noise=noise)

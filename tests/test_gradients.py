@@ -199,6 +199,17 @@ def test_from_members_equals_from_clusters():
                 np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-15, atol=0)
 
 
+def test_padding_changes_no_value(structures):
+    structure = structures["edges"]
+    padded = structure.padded(structure.members.shape[-1] + 3, structure.width + 5)
+    assert padded.members.shape[-1] == structure.members.shape[-1] + 3
+    for kind in ("smdp", "imdp"):
+        np.testing.assert_allclose(float(objective(EDGES, padded, kind, 1e-10)),
+                                   float(objective(EDGES, structure, kind, 1e-10)), rtol=0, atol=1e-14)
+    with pytest.raises(ValueError, match="pad"):
+        structure.padded(1)
+
+
 def test_bad_kind_and_mismatched_edges(structures):
     with pytest.raises(ValueError, match="kind"):
         structures["ball"].abstraction(jnp.ones(K * K) / K**2, 0.0, "mimdp")

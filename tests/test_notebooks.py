@@ -1,7 +1,6 @@
 """Every notebook in notebooks/ runs top to bottom at a small size (SMDPJAX_SMALL=1), and is
 stored without outputs."""
 
-import os
 from pathlib import Path
 
 import ipykernel  # noqa: F401  (the kernel nbclient starts; part of the dev extra)
