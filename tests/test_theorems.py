@@ -39,6 +39,14 @@ def random_problem(draw):
     return sj.System(dynamics, actions=actions, noise=noise), grid, ngrid
 
 
+def assert_nested_under(policy, abstractions, pairs, tol, slack):
+    """Evaluate one strategy on every class; each (inner, outer) interval must nest."""
+    checked = {k: sj.verify(a, policy, tol=tol) for k, a in abstractions.items()}
+    for inner, outer in pairs:
+        assert np.all(np.asarray(checked[inner].lower) >= np.asarray(checked[outer].lower) - slack), (inner, outer)
+        assert np.all(np.asarray(checked[inner].upper) <= np.asarray(checked[outer].upper) + slack), (inner, outer)
+
+
 def solve_all(system, grid, ngrid):
     clusters = compute_grid_clusters(system, grid, ngrid)
     abstractions = {kind: build(kind, grid, clusters) for kind in KINDS}
@@ -59,13 +67,8 @@ def test_bounds_are_ordered_and_nest(problem):
     assert np.all(low["smdp"] >= low["imdp"] - 1e-8)
     assert np.all(low["2imdp"] >= low["imdp"] - 1e-8)
 
-    policy = np.asarray(sols["smdp"].policy)
-    checked = {k: sj.verify(a, policy, tol=1e-10) for k, a in abstractions.items()}
-    lo = {k: np.asarray(s.lower) for k, s in checked.items()}
-    up = {k: np.asarray(s.upper) for k, s in checked.items()}
-    for inner, outer in (("smdp", "imdp"), ("2imdp", "imdp")):
-        assert np.all(lo[inner] >= lo[outer] - 1e-8), (inner, outer)
-        assert np.all(up[inner] <= up[outer] + 1e-8), (inner, outer)
+    assert_nested_under(np.asarray(sols["smdp"].policy), abstractions, (("smdp", "imdp"), ("2imdp", "imdp")),
+                        tol=1e-10, slack=1e-8)
 
 
 def test_mimdp_sits_between_imdp_and_smdp():
@@ -85,10 +88,5 @@ def test_mimdp_sits_between_imdp_and_smdp():
     assert np.all(low["smdp"] >= low["mimdp"] - 1e-6) and np.all(low["mimdp"] >= low["imdp"] - 1e-6)
     assert low["mimdp"].mean() > low["imdp"].mean() + 0.3  # the clusters do bite here
 
-    policy = np.asarray(sols["smdp"].policy)
-    checked = {k: sj.verify(a, policy, tol=1e-8) for k, a in abstractions.items()}
-    lo = {k: np.asarray(s.lower) for k, s in checked.items()}
-    up = {k: np.asarray(s.upper) for k, s in checked.items()}
-    for inner, outer in (("smdp", "mimdp"), ("mimdp", "imdp")):
-        assert np.all(lo[inner] >= lo[outer] - 1e-6), (inner, outer)
-        assert np.all(up[inner] <= up[outer] + 1e-6), (inner, outer)
+    assert_nested_under(np.asarray(sols["smdp"].policy), abstractions, (("smdp", "mimdp"), ("mimdp", "imdp")),
+                        tol=1e-8, slack=1e-6)
