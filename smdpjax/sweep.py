@@ -94,7 +94,8 @@ def solve(abstraction, tol: float = 1e-6, max_iterations: int = 100_000) -> Batc
     lower_opt, policy_rows, k_opt, d_opt = value_iteration.optimize_lower(abstraction, v0, tol, max_iterations)
     fixed = abstraction.restrict(policy_rows)
     lower, k_lo, d_lo = value_iteration.evaluate(fixed, v0, "min", tol, max_iterations)
-    upper, k_up, d_up = value_iteration.evaluate(fixed, lower, "max", tol, max_iterations)
+    upper, k_up, d_up = value_iteration.evaluate(fixed, value_iteration.top_values(abstraction), "max", tol,
+                                                 max_iterations)
     allowance = _rounding_per_backup(abstraction) * (k_opt + k_lo + k_up)
     nonterminal = abstraction.labels == NONTERMINAL
     widen = lambda v, sign: jnp.where(nonterminal, jnp.clip(v + sign * allowance, 0.0, 1.0), v)

@@ -27,6 +27,7 @@ def _check(abstraction, horizon, tol, objective):
 
 def _finish(abstraction, lower, upper, policy_rows, lower_opt, iterations, eval_iterations,
             converged, change, horizon, objective):
+    """Widen by the rounding allowance, expand the row policy to states, measure the gap."""
     rows = abstraction.rows
     allowance = abstraction.rounding_per_backup() * (int(iterations) + int(eval_iterations))
     nonterminal = jnp.asarray(abstraction.labels) == NONTERMINAL
@@ -36,11 +37,12 @@ def _finish(abstraction, lower, upper, policy_rows, lower_opt, iterations, eval_
         policy = jnp.zeros(n_states, jnp.int32).at[rows].set(policy_rows)
     else:
         policy = jnp.zeros((policy_rows.shape[0], n_states), jnp.int32).at[:, rows].set(policy_rows)
-    return Solution(lower=widen(lower, -1), upper=widen(upper, +1), policy=policy,
-                    lower_optimal=widen(lower_opt, -1), iterations=int(iterations),
-                    evaluation_iterations=int(eval_iterations), converged=bool(converged),
-                    upper_change=float(change), rounding_allowance=float(allowance), horizon=horizon,
-                    objective=objective)
+    lower, upper = widen(lower, -1), widen(upper, +1)
+    gap = float(jnp.max(jnp.where(nonterminal, upper - lower, 0.0)))
+    return Solution(lower=lower, upper=upper, policy=policy, lower_optimal=widen(lower_opt, -1),
+                    iterations=int(iterations), evaluation_iterations=int(eval_iterations),
+                    converged=bool(converged), upper_change=float(change), gap=gap,
+                    rounding_allowance=float(allowance), horizon=horizon, objective=objective)
 
 
 def synthesize(abstraction, horizon: int | None = None, tol: float = 1e-6, *, objective: str = "reach_avoid",
@@ -51,9 +53,10 @@ def synthesize(abstraction, horizon: int | None = None, tol: float = 1e-6, *, ob
         abstraction: any class from ``smdpjax.abstract`` (IMDP, 2I-MDP, MI-MDP, SMDP).
         horizon: ``None`` iterates to convergence (unbounded reach-avoid); an integer T runs
             exactly T backups and returns a time-dependent strategy ``(T, N+1)``.
-        tol: stop when an iteration changes no value by more than ``tol``. Stopping early only
-            loosens ``lower`` (iterates rise monotonically), but ``upper`` under-estimates p_up
-            by up to the remaining change (reported as ``upper_change``).
+        tol: stop each loop when an iteration changes no value by more than ``tol``. Stopping
+            early only ever loosens the bounds, never makes them unsound: ``lower`` is iterated
+            from below (every iterate is below the least fixed point) and ``upper`` from above
+            (every iterate is above it). ``Solution.gap`` reports the widest remaining interval.
         objective: ``"reach_avoid"`` (p^0 = 1 on reach cells) or ``"safety"`` (stay in the safe
             cells for ``horizon`` steps; p^0 = 1 on every safe cell).
         max_iterations: cap on each loop for unbounded horizons.
@@ -61,7 +64,7 @@ def synthesize(abstraction, horizon: int | None = None, tol: float = 1e-6, *, ob
     Returns:
         ``Solution``. ``lower`` is the certified value of the returned strategy, evaluated
         separately from the optimization so that a tie-broken strategy can never claim more
-        than it achieves.
+        than it achieves; ``upper`` the strategy's optimistic value, iterated from above.
 
     An abstraction with a ``relaxation`` attribute (an abstraction of the same system whose
     ambiguity sets contain its own, e.g. the IMDP inside an MI-MDP) is solved warm: each loop
@@ -133,9 +136,26 @@ def _pessimistic(abstraction, v0, policy_rows, tol, max_iterations):
     return lo, int(k) + k0, bool(delta <= tol)
 
 
+def _optimistic(abstraction, policy_rows, tol, max_iterations):
+    """The strategy's value against the maximizing adversary, iterated from above.
+
+    Starts from 1 on every state that is not avoided (above any probability), or from a
+    relaxation's optimistic value: its ambiguity sets are larger, so its optimistic value is
+    higher, and any iterate from above of it lies above this abstraction's least fixed point.
+    Every iterate from such a start is a valid upper bound, so stopping at ``tol`` is sound.
+    """
+    relaxation = getattr(abstraction, "relaxation", None)
+    if relaxation is not None:
+        start, k0, _ = _optimistic(relaxation, policy_rows, tol, max_iterations)
+    else:
+        start, k0 = value_iteration.top_values(abstraction), 0
+    up, k, delta = value_iteration.evaluate(abstraction.restrict(policy_rows), start, "max", tol, max_iterations)
+    return up, int(k) + k0, float(delta)
+
+
 def _evaluate_both(abstraction, v0, policy_rows, tol, max_iterations):
-    """Pessimistic value of the strategy, then its optimistic value starting from the pessimistic one."""
+    """Pessimistic value of the strategy from below, optimistic value from above."""
     lo, k_lo, converged_lo = _pessimistic(abstraction, v0, policy_rows, tol, max_iterations)
-    up, k_up, d_up = value_iteration.evaluate(abstraction.restrict(policy_rows), lo, "max", tol, max_iterations)
-    converged = converged_lo and bool(d_up <= tol)
-    return lo, up, k_lo + int(k_up), (converged, float(d_up))
+    up, k_up, d_up = _optimistic(abstraction, policy_rows, tol, max_iterations)
+    converged = converged_lo and d_up <= tol
+    return lo, up, k_lo + k_up, (converged, d_up)

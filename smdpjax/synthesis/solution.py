@@ -18,8 +18,8 @@ class Solution:
     Attributes:
         lower: ``(N+1,)`` p_low under ``policy``: for every x in cell s, the closed loop satisfies
             the specification with probability >= lower[s] (sound at every stopping point).
-        upper: ``(N+1,)`` p_up under ``policy`` (the adversary maximizes); computed by iteration
-            from below, so it is an upper bound only up to the final change ``upper_change``.
+        upper: ``(N+1,)`` p_up under ``policy`` (the adversary maximizes); iterated from above, so
+            it is an upper bound at every stopping point.
         policy: ``(N+1,)`` action index per state, or ``(T, N+1)`` for a finite horizon
             (``policy[t]`` at time t). Terminal states hold 0.
         lower_optimal: ``(N+1,)`` the optimal robust value max_sigma min_xi (equal to ``lower``
@@ -28,6 +28,8 @@ class Solution:
         evaluation_iterations: iterations spent evaluating the strategy (0 for finite horizon).
         converged: whether both loops stopped on the tolerance rather than on max_iterations.
         upper_change: sup-norm change of the last upper-bound iteration.
+        gap: ``max(upper - lower)`` over the non-terminal states: how wide the certified interval
+            still is (abstraction error plus whatever the tolerance left).
         rounding_allowance: bound on accumulated float64 rounding, already subtracted from
             ``lower`` and added to ``upper`` on non-terminal states.
     """
@@ -40,6 +42,7 @@ class Solution:
     evaluation_iterations: int = static_field()
     converged: bool = static_field()
     upper_change: float = static_field()
+    gap: float = static_field()
     rounding_allowance: float = static_field()
     horizon: int | None = static_field()
     objective: str = static_field()

@@ -10,9 +10,11 @@ structure, all of it inside ``lax.while_loop`` / ``lax.scan`` under ``jit``:
   strategies that idle forever in a loop of equal values.
 * ``evaluate``: the lower (adversary minimizes) or upper (adversary maximizes) value of a fixed
   strategy. The lower one, iterated from p^0, certifies the synthesized strategy (it is what the
-  controller achieves at worst). The upper one starts from that lower value, which lies below
-  it, and so needs fewer iterations than from p^0; it is exact only at convergence (iterates
-  from below under-estimate it).
+  controller achieves at worst). The upper one is iterated from above, from ``top_values``
+  (1 on every state that is not avoided): the Bellman operator is monotone, so iterates from
+  any upper bound stay upper bounds of the least fixed point, and stopping early is sound.
+  (From above, iterates approach the greatest fixed point; with unbounded noise the remainder
+  cell reaches a value-1 state from everywhere, which makes the fixed point unique.)
 * ``finite_horizon``: exactly T backups, a time-dependent strategy, lower and upper together.
 """
 
@@ -25,7 +27,21 @@ import jax.numpy as jnp
 
 
 def _set_rows(v, rows, values):
-    return v.at[rows].set(values)
+    return _replicated(v.at[rows].set(values), rows)
+
+
+def _replicated(v, rows):
+    """Pin ``v`` to a full copy on every device when the rows are sharded (``smdpjax.sharding``).
+
+    Each device then computes its rows' backups against the whole value vector, and the
+    sorts and prefix sums over ``v`` are never split (which would change their rounding). A
+    no-op for an abstraction on one device.
+    """
+    typeof = getattr(jax, "typeof", None)  # jax >= 0.5; older jax: leave it to the partitioner
+    mesh = getattr(getattr(typeof(rows), "sharding", None), "mesh", None) if typeof is not None else None
+    if mesh is None or mesh.empty or mesh.size <= 1:
+        return v
+    return jax.lax.with_sharding_constraint(v, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
 
 
 @functools.partial(jax.jit, static_argnames=("max_iterations",))
@@ -56,13 +72,19 @@ def optimize_lower(abstraction, v0, tol, max_iterations: int, policy0=None):
     return v, policy, k, delta
 
 
+def top_values(abstraction):
+    """``(N+1,)`` the trivial upper bound of every reach-avoid value: 1 except on avoided states
+    (avoid cells and the sink, which are absorbing with value 0)."""
+    return abstraction.initial_values("safety")
+
+
 @functools.partial(jax.jit, static_argnames=("adversary", "max_iterations"))
 def evaluate(abstraction, v0, adversary: str, tol, max_iterations: int):
     """Value of a single-action abstraction (a strategy already applied, see ``restrict``) against
     a minimizing or maximizing adversary, iterated from ``v0``: ``(values, iterations, change)``.
 
-    ``v0`` must lie below the least fixed point (e.g. p^0, or the pessimistic value when
-    computing the optimistic one): iterates then rise monotonically to it.
+    From a ``v0`` below the least fixed point with ``v0 <= T(v0)`` (p^0) iterates rise to it and
+    are lower bounds; from a ``v0`` above it (``top_values``) every iterate is an upper bound.
     """
     rows = abstraction.rows
 
