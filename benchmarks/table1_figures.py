@@ -1,0 +1,169 @@
+"""Figures of the paper, regenerated from ``benchmarks.table1`` result files.
+
+    python -m benchmarks.table1_figures --results results/table1 --out results/figures
+
+* ``fig2_unicycle_2d.png``: p_low heat map of each class with closed-loop trajectories, 2-D
+  unicycle (the smallest grid with results; paper Fig. 2).
+* ``fig5_unicycle_3d.png``: the same for the 3-D unicycle, sliced at a heading (paper Fig. 5).
+* ``fig3_vs_states.png``, ``fig4_vs_noise_cells.png``, ``fig6_vs_rooms.png``: e_avg, T_abs, T_syn
+  and memory against |S| (2-D rows), |C| (3-D rows) and n (temperature rows); ours solid, the
+  paper's dashed, log scale for times and memory (paper Figs. 3, 4, 6).
+
+Missing rows are skipped; a figure with nothing to show is not written.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from .paper_table1 import KIND_NAMES, KIND_ORDER, PAPER, TO, row_spec
+from .table1 import case_study, load_results
+
+COLORS = {"imdp": "tab:blue", "2imdp": "tab:orange", "mimdp": "tab:green", "smdp": "tab:red"}
+
+
+def _ok(results):
+    return {row: r for row, r in results.items() if r.get("status") == "ok"}
+
+
+def _trajectories(study, policy, starts, steps, seed=3):
+    import jax
+
+    import smdpjax as sj
+
+    controller = sj.Controller(study.state_grid, policy)
+    sim = sj.simulate(study.system, controller, starts, jax.random.PRNGKey(seed), max_steps=steps,
+                      objective=study.objective, return_trajectories=True)
+    return np.asarray(sim.trajectories), np.asarray(sim.satisfied)
+
+
+def _draw_boxes(ax, boxes, color, dims=(0, 1)):
+    from matplotlib.patches import Rectangle
+
+    lo, hi = boxes
+    for a, b in zip(lo, hi):
+        ax.add_patch(Rectangle((a[dims[0]], b[dims[1]] * 0 + a[dims[1]]), b[dims[0]] - a[dims[0]],
+                               b[dims[1]] - a[dims[1]], fill=False, edgecolor=color, lw=1.5))
+
+
+def heat_maps(results_dir: Path, results: dict, system: str, out: Path, heading: float = np.pi / 4):
+    """One panel per class of the first configuration of ``system`` with results."""
+    import matplotlib.pyplot as plt
+
+    rows = sorted(r for r in _ok(results) if row_spec(r).system == system)
+    if not rows:
+        return None
+    group = row_spec(rows[0]).group
+    rows = [r for r in rows if row_spec(r).group == group]
+    quick = results[rows[0]].get("quick", False)
+    study = case_study(row_spec(rows[0]), quick)
+    grid = study.state_grid
+    fig, axes = plt.subplots(1, len(rows), figsize=(4.2 * len(rows), 4), squeeze=False)
+    rng = np.random.default_rng(0)
+    for ax, row in zip(axes[0], rows):
+        data = np.load(results_dir / f"row_{row:02d}.npz")
+        lower = data["lower"][:-1].reshape(tuple(grid.cells))
+        if grid.n == 3:
+            k = int(np.clip(np.floor((heading - grid.low[2]) / grid.width[2]), 0, grid.cells[2] - 1))
+            lower = lower[:, :, k]
+        image = ax.imshow(lower.T, origin="lower", extent=(grid.low[0], grid.high[0], grid.low[1], grid.high[1]),
+                          vmin=0, vmax=1, cmap="viridis")
+        _draw_boxes(ax, grid.avoid_boxes, "white")
+        _draw_boxes(ax, grid.reach_boxes, "magenta")
+        starts = data["initial_cells"][rng.choice(len(data["initial_cells"]), min(8, len(data["initial_cells"])),
+                                                  replace=False)]
+        x0 = np.asarray(grid.cell_centers(starts))
+        if grid.n == 3:
+            x0[:, 2] = heading
+        traj, ok = _trajectories(study, data["policy"], x0, steps=150)
+        for b in range(traj.shape[1]):
+            ax.plot(traj[:, b, 0], traj[:, b, 1], color="white" if ok[b] else "red", lw=1)
+            ax.plot(traj[0, b, 0], traj[0, b, 1], "o", color="white", ms=3)
+        spec = row_spec(row)
+        ax.set_title(f"row {row}: {KIND_NAMES[spec.kind]}, mean p_low {data['lower'][:-1][grid.labels == 0].mean():.3f}")
+        ax.set_xlabel("$p_x$")
+        ax.set_ylabel("$p_y$")
+    fig.colorbar(image, ax=axes[0].tolist(), shrink=0.85, label="$\\underline{p}$")
+    slice_note = f", heading slice th = {heading:.2f}" if grid.n == 3 else ""
+    fig.suptitle(f"{system}: p_low and closed-loop trajectories (white: satisfied, red: not){slice_note}")
+    fig.savefig(out, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return out
+
+
+def metric_plots(results: dict, system: str, xkey: str, xlabel: str, out: Path):
+    """e_avg, T_abs, T_syn, memory against the varied size, per class; paper dashed."""
+    import matplotlib.pyplot as plt
+
+    rows = sorted(r for r in results if row_spec(r).system == system)
+    ok = _ok(results)
+    if not any(r in ok for r in rows):
+        return None
+    metrics = (("e_avg", "e_avg", 1.0, False), ("t_abs_s", "T_abs (s)", 60.0, True),
+               ("t_syn_s", "T_syn (s)", 60.0, True), ("memory_bytes", "memory (MB)", 1e3, True))
+    paper_key = {"e_avg": "e_avg", "t_abs_s": "t_abs_min", "t_syn_s": "t_syn_min", "memory_bytes": "memory_gb"}
+    fig, axes = plt.subplots(1, 4, figsize=(18, 3.8))
+    for ax, (key, label, paper_scale, log) in zip(axes, metrics):
+        for kind in KIND_ORDER:
+            mine = [(results[r][xkey], results[r][key] / (1e6 if key == "memory_bytes" else 1))
+                    for r in rows if r in ok and row_spec(r).kind == kind and key in results[r]]
+            theirs = [(_paper_x(r, xkey), getattr(PAPER[r], paper_key[key]) * paper_scale)
+                      for r in rows if row_spec(r).kind == kind and getattr(PAPER[r], paper_key[key]) not in (None, TO)]
+            if mine:
+                ax.plot(*zip(*mine), "o-", color=COLORS[kind], label=f"{KIND_NAMES[kind]} (ours)")
+            if theirs:
+                ax.plot(*zip(*theirs), "s--", color=COLORS[kind], alpha=0.5, label=f"{KIND_NAMES[kind]} (paper)")
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(label)
+        if log:
+            ax.set_yscale("log")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7, ncol=2)
+    quick = " (quick scale: not comparable to the paper)" if any(results[r].get("quick") for r in rows if r in results) else ""
+    fig.suptitle(f"{system}: metrics against {xlabel}{quick}")
+    fig.savefig(out, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return out
+
+
+def _paper_x(row: int, xkey: str):
+    """The paper's value of the varied size for a row (what our full-scale rows use too)."""
+    spec = row_spec(row)
+    if xkey == "states":
+        return spec.value ** 2 + 1
+    if xkey == "noise_cells":
+        return spec.value ** 2 + 1
+    return spec.value
+
+
+def main(argv=None):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--results", type=Path, default=Path("results/table1"))
+    parser.add_argument("--out", type=Path, default=Path("results/figures"))
+    parser.add_argument("--heading", type=float, default=np.pi / 4, help="heading slice of the 3-D heat maps")
+    args = parser.parse_args(argv)
+    results = load_results(args.results)
+    if not results:
+        parser.error(f"no row_*.json in {args.results}: run python -m benchmarks.table1 first")
+    args.out.mkdir(parents=True, exist_ok=True)
+    written = [
+        heat_maps(args.results, results, "unicycle_2d", args.out / "fig2_unicycle_2d.png"),
+        heat_maps(args.results, results, "unicycle_3d", args.out / "fig5_unicycle_3d.png", args.heading),
+        metric_plots(results, "unicycle_2d", "states", "|S|", args.out / "fig3_vs_states.png"),
+        metric_plots(results, "unicycle_3d", "noise_cells", "|C|", args.out / "fig4_vs_noise_cells.png"),
+        metric_plots(results, "temperature", "n", "n (rooms)", args.out / "fig6_vs_rooms.png"),
+    ]
+    for path in written:
+        if path is not None:
+            print(f"wrote {path}")
+    return [p for p in written if p is not None]
+
+
+if __name__ == "__main__":
+    main()
