@@ -75,7 +75,7 @@ def heat_maps(results_dir: Path, results: dict, system: str, out: Path, heading:
         _draw_boxes(ax, grid.reach_boxes, "magenta")
         starts = data["initial_cells"][rng.choice(len(data["initial_cells"]), min(8, len(data["initial_cells"])),
                                                   replace=False)]
-        x0 = np.asarray(grid.cell_centers(starts))
+        x0 = np.array(grid.cell_centers(starts))
         if grid.n == 3:
             x0[:, 2] = heading
         traj, ok = _trajectories(study, data["policy"], x0, steps=150)
