@@ -30,7 +30,7 @@ def build(kind: str, grid: StateGrid, clusters: GridClusters, **options):
 
 
 def abstract(system: System, state_grid: StateGrid, noise_grid: NoiseGrid, kind: str = "smdp", *,
-             method: str = "both", policy=None, progress: bool = False, **options):
+             method: str = "both", policy=None, progress: bool = False, mesh=None, **options):
     """Abstract ``system`` on the partitions into an uncertain MDP of class ``kind``.
 
     Args:
@@ -44,6 +44,9 @@ def abstract(system: System, state_grid: StateGrid, noise_grid: NoiseGrid, kind:
         policy: optional ``(N,)`` action index per cell: abstract only that action in each cell
             (``|A| = 1``), to verify a fixed controller with ``verify(abstraction)``.
         progress: show a progress bar over the reachable-set chunks.
+        mesh: optional ``jax.sharding.Mesh`` (``smdpjax.sharding.row_mesh()``): the reachable sets
+            are computed with the rows split across its devices, and the abstraction is returned
+            sharded (``smdpjax.sharding.shard_abstraction``), so that synthesis runs on all of them.
 
     Returns:
         An abstraction PyTree (``IMDP``, ``TwoLayerIMDP``, ``MIMDP``, ``SMDP``), ready for
@@ -54,8 +57,12 @@ def abstract(system: System, state_grid: StateGrid, noise_grid: NoiseGrid, kind:
     if kind not in _BUILDERS:
         raise NotImplementedError(f"abstraction kind {kind!r} is not available yet")
     clusters = compute_grid_clusters(system, state_grid, noise_grid, method=method, policy=policy,
-                                     progress=progress)
-    return build(kind, state_grid, clusters, **options)
+                                     progress=progress, mesh=mesh)
+    abstraction = build(kind, state_grid, clusters, **options)
+    if mesh is None:
+        return abstraction
+    from ..sharding import shard_abstraction
+    return shard_abstraction(abstraction, mesh)
 
 
 __all__ = ["abstract", "build", "KINDS", "IMDP", "SMDP", "TwoLayerIMDP", "MIMDP", "AbstractionMixin", "GridClusters", "IndexBoxes",

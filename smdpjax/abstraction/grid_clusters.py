@@ -6,6 +6,7 @@ its output, so all four classes share the same reachable sets (as the paper's co
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 
@@ -57,13 +58,17 @@ def validate(system: System, grid: StateGrid, noise_grid: NoiseGrid) -> np.ndarr
 
 
 def compute_grid_clusters(system: System, grid: StateGrid, noise_grid: NoiseGrid, *, method: str = "both",
-                          policy=None, progress: bool = False) -> GridClusters:
+                          policy=None, progress: bool = False, mesh=None) -> GridClusters:
     """Reachable boxes of all (non-terminal cell, action, bounded noise cell) triples, snapped to
     index boxes on ``grid``. Raises ValueError if the dynamics give NaN bounds anywhere.
 
     ``policy``: optional ``(N,)`` action index per cell (a fixed controller, e.g. a look-up
     table). Only that action is abstracted in each cell, so the abstraction has ``|A| = 1``
     (action 0 of a row is the policy's action): the way to verify a given controller cheaply.
+
+    ``mesh``: optional ``jax.sharding.Mesh`` (``smdpjax.sharding.row_mesh()``): each chunk of rows
+    is split across its devices, which compute their rows' reachable sets. The result is the
+    same, on the default device.
     """
     if method not in ("natural", "centered", "both"):
         raise ValueError(f"unknown reachable-set method {method!r}; expected 'natural', 'centered' or 'both'")
@@ -81,6 +86,14 @@ def compute_grid_clusters(system: System, grid: StateGrid, noise_grid: NoiseGrid
     w_lo, w_hi = noise_grid.boxes()
     per_row = (1 if policy is not None else system.num_actions) * noise_grid.num_bounded
     chunk = int(max(1, min(rows.size, BOXES_PER_CHUNK // per_row)))
+    place, on_mesh = (lambda a: a), contextlib.nullcontext
+    if mesh is not None:
+        from ..sharding import padded_rows, row_sharding
+        chunk = padded_rows(chunk, mesh)  # whole rows per device
+        split = row_sharding(mesh)
+        place = functools.partial(jax.device_put, device=split)
+        if hasattr(jax, "set_mesh"):  # trace under the mesh: constants then match the inputs'
+            on_mesh = functools.partial(jax.set_mesh, split.mesh)  # shardings (no `reshard` ops)
     run = _chunk_fn(system.dynamics, grid, method)
     starts = range(0, rows.size, chunk)
     if progress:
@@ -90,10 +103,13 @@ def compute_grid_clusters(system: System, grid: StateGrid, noise_grid: NoiseGrid
     for start in starts:
         idx = rows[start:start + chunk]
         padded = np.concatenate([idx, np.full(chunk - idx.size, idx[-1])])  # one compiled shape
-        x_lo, x_hi = grid.cell_bounds(padded)
-        row_actions = actions if actions.ndim == 2 else actions[np.minimum(np.arange(start, start + chunk), rows.size - 1)]
-        boxes, has_nan = run(x_lo, x_hi, row_actions, w_lo, w_hi)
-        parts.append(jax.tree.map(lambda a: a[:idx.size], boxes))
+        x_lo, x_hi = place(grid.cell_bounds(padded))
+        row_actions = actions if actions.ndim == 2 else place(actions[np.minimum(np.arange(start, start + chunk),
+                                                                                 rows.size - 1)])
+        with on_mesh():
+            boxes, has_nan = run(x_lo, x_hi, row_actions, w_lo, w_hi)
+        trim = (lambda a: a[:idx.size]) if mesh is None else (lambda a: np.asarray(a)[:idx.size])  # gathered
+        parts.append(jax.tree.map(trim, boxes))
         nan_rows.append(np.asarray(has_nan[:idx.size]))
     nan_rows = np.concatenate(nan_rows)
     if nan_rows.any():

@@ -186,7 +186,7 @@ _EXACT = {"broadcast_in_dim", "reshape", "squeeze", "expand_dims", "concatenate"
           "dynamic_slice", "dynamic_update_slice", "scatter", "scatter-max", "scatter-min",
           "select_n", "max", "min", "clamp", "neg", "abs", "sign", "floor", "ceil", "round",
           "reduce_max", "reduce_min", "cummax", "cummin", "sort", "stop_gradient",
-          "convert_element_type", "optimization_barrier", "sharding_constraint",
+          "convert_element_type", "optimization_barrier", "sharding_constraint", "reshard",
           "reduce_and", "reduce_or"}
 # Rules that are also valid for non-point integer/bool intervals (no float-only tricks).
 _INT_OK = {"broadcast_in_dim", "reshape", "squeeze", "expand_dims", "concatenate", "slice",
@@ -194,7 +194,7 @@ _INT_OK = {"broadcast_in_dim", "reshape", "squeeze", "expand_dims", "concatenate
            "dynamic_slice", "dynamic_update_slice", "scatter", "scatter-max", "scatter-min",
            "select_n", "max", "min", "clamp", "neg", "abs", "sign", "reduce_max", "reduce_min",
            "cummax", "cummin", "sort", "stop_gradient", "convert_element_type",
-           "optimization_barrier", "sharding_constraint", "add", "add_any", "sub", "mul",
+           "optimization_barrier", "sharding_constraint", "reshard", "add", "add_any", "sub", "mul",
            "lt", "le", "gt", "ge", "eq", "ne", "and", "or", "not", "xor", "reduce_and",
            "reduce_or", "reduce_sum", "cumsum", "scatter-add", "is_finite"}
 
@@ -514,7 +514,7 @@ def _monotone(index_from=None, index_at=()):
 
 for _name in ["broadcast_in_dim", "reshape", "squeeze", "expand_dims", "concatenate", "slice",
               "transpose", "rev", "pad", "copy", "copy_p", "stack", "split", "clamp", "reduce_max", "reduce_min", "cummax", "cummin", "optimization_barrier",
-              "sharding_constraint", "reduce_and", "reduce_or"]:
+              "sharding_constraint", "reshard", "reduce_and", "reduce_or"]:
     _RULES[_name] = _monotone()
 _RULES["gather"] = _monotone(index_at=(1,))
 _RULES["scatter"] = _RULES["scatter-max"] = _RULES["scatter-min"] = _monotone(index_at=(1,))
