@@ -5,9 +5,18 @@ q_{s,a,c}; Theorem 4 shows the adversary's best choice puts all of P_W(c) on the
 
     min_{gamma in Gamma^SMDP_{s,a}} sum gamma(s') v(s') = sum_c P_W(c) min_{s' in q_{s,a,c}} v(s').
 
-The backup is a gather of ``v`` at the padded member lists followed by a min over the padding
-axis (faster than ``segment_min`` on CPU and GPU, see the design notes). The remainder noise cell
-(unbounded W) has the whole state space as its cluster, so it contributes ``P_W(rest) * min(v)``.
+The remainder noise cell (unbounded W) has the whole state space as its cluster, so it contributes
+``P_W(rest) * min(v)``. The clusters come in one of two encodings, which give identical values:
+
+* ``"boxes"`` (``BoxClusters``, the default on grid partitions): each cluster is an index box
+  (first cell and number of cells per dimension, small ints) plus a sink flag. The cluster minimum
+  is a range minimum over the box, answered from a sparse table of window minima of ``v``
+  (``range_min``: a few lookups per box), rebuilt once per backup; memory is ``O(n)`` per
+  cluster, independent of the cluster's size.
+* ``"members"`` (``MemberClusters``): padded member lists, gathered and reduced over the padding
+  axis (faster than ``segment_min``, see the design notes); memory grows with the largest
+  cluster. It is the encoding of frozen cluster structures (``from_members``, used by
+  ``smdpjax.gradients`` and ``smdpjax.sweep``), and works for clusters that are no boxes.
 """
 
 from __future__ import annotations
@@ -16,24 +25,138 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .._pytree import pytree_dataclass, static_field
+from ..partition import StateGrid
 from .base import AbstractionMixin, check_adversary
-from .clusters import cluster_members, max_lengths
+from .clusters import IndexBoxes, cluster_members, max_lengths
 from .grid_clusters import GridClusters
+from .imdp import row_chunks
+from .range_min import RangeSpec, build_table, query_table
+
+ENCODINGS = ("auto", "boxes", "members")
+
+
+@pytree_dataclass
+class MemberClusters:
+    """Clusters as padded member lists.
+
+    Attributes:
+        members: ``(R, A, C_b, K)`` int16 (int32 beyond 32k states) cluster members (cells, sink
+            ``N``), padded with ``N + 1`` (read with ``mode="fill"``: -1 would wrap to the sink).
+    """
+
+    members: jax.Array
+
+    encoding = "members"  # a class attribute, not a field: no PyTree leaf
+
+    @property
+    def shape(self) -> tuple:
+        """``(R, A, C_b)``."""
+        return tuple(self.members.shape[:3])
+
+    def take_actions(self, actions) -> "MemberClusters":
+        """The clusters of action ``actions[r]`` in row r: ``(R, 1, C_b, K)``."""
+        return MemberClusters(jnp.take_along_axis(self.members, actions[:, None, None, None], axis=1))
+
+    def extreme(self, v, minimize: bool):
+        """min (or max) of ``v (N+1,)`` over every cluster: ``(*shape)``."""
+        fill = jnp.inf if minimize else -jnp.inf
+        picked = v.at[self.members].get(mode="fill", fill_value=fill)
+        return picked.min(axis=-1) if minimize else picked.max(axis=-1)
+
+    def member_lists(self):
+        """``(R, A, C_b, K)`` padded member lists."""
+        return self.members
+
+    def describe(self) -> str:
+        return f"encoding=members, max cluster size={self.members.shape[-1]}"
+
+
+@pytree_dataclass
+class BoxClusters:
+    """Clusters as index boxes on a grid: the cells of the box (wrapping around on periodic
+    dimensions), plus the sink where ``sink`` is set.
+
+    Attributes:
+        start: ``(R, A, C_b, n)`` first cell per dimension, in ``[0, cells)``; int8/int16/int32,
+            the smallest that holds every cell index.
+        length: ``(R, A, C_b, n)`` cells per dimension (same dtype), at most
+            ``spec.max_lengths``; 0 in every dimension when the box misses the grid.
+        sink: ``(R, A, C_b)`` bool, the cluster contains the sink ``N``.
+        spec: static grid shape, periodic dimensions and longest box per dimension.
+    """
+
+    start: jax.Array
+    length: jax.Array
+    sink: jax.Array
+    spec: RangeSpec = static_field()
+
+    encoding = "boxes"
+
+    @classmethod
+    def from_index_boxes(cls, grid: StateGrid, boxes: IndexBoxes) -> "BoxClusters":
+        """Compact copy of ``boxes`` (leading shape ``(R, A, C_b)``) on ``grid`` (needs concrete boxes)."""
+        dtype = _small_int(int(np.max(grid.cells)))
+        return cls(start=jnp.asarray(boxes.start, dtype), length=jnp.asarray(boxes.length, dtype),
+                   sink=jnp.asarray(boxes.sink, bool), spec=RangeSpec.for_grid(grid, max_lengths(boxes)))
+
+    @property
+    def shape(self) -> tuple:
+        return tuple(self.sink.shape)
+
+    def take_actions(self, actions) -> "BoxClusters":
+        """The clusters of action ``actions[r]`` in row r: leading shape ``(R, 1, C_b)``."""
+        pick = lambda a: jnp.take_along_axis(a, actions.reshape((-1,) + (1,) * (a.ndim - 1)), axis=1)
+        return dataclasses.replace(self, start=pick(self.start), length=pick(self.length), sink=pick(self.sink))
+
+    def extreme(self, v, minimize: bool):
+        """min (or max) of ``v (N+1,)`` over every cluster: ``(*shape)``, exactly the members' min."""
+        op = "min" if minimize else "max"
+        # v[:N] is the grid array (C order over spec.cells); v[N] is the sink. A box that misses
+        # the grid yields the identity (+inf / -inf), so only its sink term counts.
+        table = build_table(v[:-1], self.spec, op)
+        in_grid = query_table(table, self.start, self.length, self.spec, op)
+        # min(in_grid, v[N] if sink): written as one select on in_grid, so that XLA fuses it into
+        # the gathers' loop instead of materializing a (R, A, C_b) array of sink terms
+        worse = v[-1] < in_grid if minimize else v[-1] > in_grid
+        return jnp.where(self.sink & worse, v[-1], in_grid)
+
+    def member_lists(self):
+        """The same clusters as padded member lists ``(R, A, C_b, prod(max_lengths) + 1)``,
+        equal to what ``SMDP.from_clusters(..., encoding="members")`` stores."""
+        spec = self.spec
+        # Membership depends only on the index structure: a unit grid with the same cells will do.
+        grid = StateGrid(np.zeros(spec.n), np.asarray(spec.cells, float), spec.cells, periodic=spec.periodic)
+        boxes = IndexBoxes(start=self.start.astype(jnp.int32), length=self.length.astype(jnp.int32), sink=self.sink)
+        return jnp.concatenate([cluster_members(grid, chunk, spec.max_lengths) for chunk in row_chunks(boxes)])
+
+    def describe(self) -> str:
+        lengths = "x".join(map(str, self.spec.max_lengths))
+        return f"encoding=boxes, max box={lengths} cells"
+
+
+def _small_int(max_value: int):
+    """Smallest signed integer type holding ``0 .. max_value``."""
+    for dtype in (jnp.int8, jnp.int16, jnp.int32):
+        if max_value <= np.iinfo(dtype).max:
+            return dtype
+    raise ValueError(f"{max_value} cells in one dimension do not fit int32")
 
 
 @pytree_dataclass
 class SMDP(AbstractionMixin):
     """Attributes:
-        members: ``(R, A, C_b, K)`` int16 (int32 beyond 32k states) cluster members (cells, sink ``N``), padded with ``N + 1``.
+        clusters: the clusters q_{s,a,c} with leading shape ``(R, A, C_b)``: ``BoxClusters``
+            (index boxes) or ``MemberClusters`` (padded member lists); see ``encoding``.
         prob: ``(C_b,)`` P_W(c) of the bounded noise cells.
         prob_rest: scalar P_W of the remainder cell, whose cluster is every state.
         rows: ``(R,)`` int32 state index of each row (the non-terminal cells).
         labels: ``(N + 1,)`` int8 state labels (``partition.NONTERMINAL/REACH/AVOID``).
     """
 
-    members: jax.Array
+    clusters: BoxClusters | MemberClusters
     prob: jax.Array
     prob_rest: jax.Array
     rows: jax.Array
@@ -41,19 +164,33 @@ class SMDP(AbstractionMixin):
     kind: str = static_field(default="smdp")
 
     @classmethod
-    def from_clusters(cls, grid, clusters: GridClusters) -> "SMDP":
-        members = cluster_members(grid, clusters.boxes, max_lengths(clusters.boxes))
-        return cls(members=members, prob=jnp.asarray(clusters.prob), prob_rest=jnp.asarray(clusters.prob_rest),
+    def from_clusters(cls, grid, clusters: GridClusters, encoding: str = "auto") -> "SMDP":
+        """The SMDP of precomputed ``clusters`` on ``grid``.
+
+        ``encoding``: ``"boxes"`` (index boxes + range minima), ``"members"`` (padded member
+        lists) or ``"auto"``, which picks ``"boxes"``: grid clusters always are index boxes, and
+        those are smaller (O(n) per cluster instead of O(cluster size)) and faster to back up.
+        """
+        if encoding not in ENCODINGS:
+            raise ValueError(f"unknown SMDP encoding {encoding!r}; expected one of {ENCODINGS}")
+        if encoding == "members":
+            lengths = max_lengths(clusters.boxes)
+            # row chunks bound the (rows, A, C_b, K, n) int32 temporaries of the expansion
+            part = MemberClusters(jnp.concatenate([cluster_members(grid, chunk, lengths)
+                                                   for chunk in row_chunks(clusters.boxes)]))
+        else:
+            part = BoxClusters.from_index_boxes(grid, clusters.boxes)
+        return cls(clusters=part, prob=jnp.asarray(clusters.prob), prob_rest=jnp.asarray(clusters.prob_rest),
                    rows=jnp.asarray(clusters.rows, jnp.int32), labels=jnp.asarray(grid.state_labels))
 
     @classmethod
     def from_members(cls, members, prob, prob_rest, rows, labels) -> "SMDP":
         """An SMDP from a frozen cluster structure and noise-cell probabilities.
 
-        ``members (R, A, C_b, K)`` as in ``from_clusters``; ``prob (C_b,)``, ``prob_rest`` may be
+        ``members (R, A, C_b, K)`` as in ``MemberClusters``; ``prob (C_b,)``, ``prob_rest`` may be
         traced: the SMDP is linear in them, so ``jax.grad``/``jax.vmap`` go through.
         """
-        return cls(members=members, prob=jnp.asarray(prob), prob_rest=jnp.asarray(prob_rest),
+        return cls(clusters=MemberClusters(members), prob=jnp.asarray(prob), prob_rest=jnp.asarray(prob_rest),
                    rows=jnp.asarray(rows, jnp.int32), labels=jnp.asarray(labels))
 
     def with_probabilities(self, prob, prob_rest) -> "SMDP":
@@ -61,31 +198,45 @@ class SMDP(AbstractionMixin):
         return dataclasses.replace(self, prob=jnp.asarray(prob), prob_rest=jnp.asarray(prob_rest))
 
     @property
+    def encoding(self) -> str:
+        """``"boxes"`` or ``"members"``."""
+        return self.clusters.encoding
+
+    @property
+    def members(self):
+        """Padded member lists ``(R, A, C_b, K)`` (cells, sink ``N``, padding ``N + 1``) in either
+        encoding; index boxes are expanded on demand (for inspection: memory grows with K)."""
+        return self.clusters.member_lists()
+
+    @property
     def num_actions(self) -> int:
-        return int(self.members.shape[1])
+        return int(self.clusters.shape[1])
 
     @property
     def summands_per_backup(self) -> float:
-        return float(self.members.shape[2] + 1)
+        return float(self.clusters.shape[2] + 1)
 
     def restrict(self, actions) -> "SMDP":
         """The single-action SMDP of a stationary strategy ``actions: (R,)``."""
-        members = jnp.take_along_axis(self.members, actions[:, None, None, None], axis=1)
-        return dataclasses.replace(self, members=members)
+        return dataclasses.replace(self, clusters=self.clusters.take_actions(actions))
 
     def q_values(self, v, adversary: str = "min", actions=None):
         minimize = check_adversary(adversary)
-        members = self.members
+        clusters = self.clusters
         if actions is not None:
-            members = jnp.take_along_axis(members, actions[:, None, None, None], axis=1)[:, 0]
-        fill = jnp.inf if minimize else -jnp.inf
-        picked = v.at[members].get(mode="fill", fill_value=fill)
-        worst = picked.min(axis=-1) if minimize else picked.max(axis=-1)
+            clusters = clusters.take_actions(actions)
+        worst = clusters.extreme(v, minimize)  # (R, A, C_b)
+        if actions is not None:
+            worst = worst[:, 0]
+        # Both encodings give the same cluster extremes; the barrier makes XLA sum them with the
+        # same kernel too (on GPU it would otherwise fuse the sum into either encoding's gathers,
+        # in a different order: values 1 ulp apart). Free on CPU, where nothing fuses across it.
+        worst = jax.lax.optimization_barrier(worst)
         everywhere = v.min() if minimize else v.max()
         return worst @ self.prob + self.prob_rest * everywhere
 
     def __repr__(self):
-        r, a, c, k = self.members.shape
+        r, a, c = self.clusters.shape
         rest = " + remainder" if float(self.prob_rest) > 0 else ""
-        return (f"SMDP(|S|={self.num_states}, rows={r}, |A|={a}, |C|={c}{rest}, "
-                f"max cluster size={k}, memory={self.nbytes / 1e6:.2f} MB)")
+        return (f"SMDP(|S|={self.num_states}, rows={r}, |A|={a}, |C|={c}{rest}, {self.clusters.describe()}, "
+                f"memory={self.nbytes / 1e6:.2f} MB)")
