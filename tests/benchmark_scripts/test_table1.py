@@ -44,7 +44,7 @@ def _run(args, tmp_path):
 
 def test_quick_rows_run_render_and_resume(tmp_path):
     rows = "4,20,29,32"  # SMDP of the smallest 2-D and 3-D configurations, IMDP and SMDP of 2 rooms
-    done = _run(["--rows", rows, "--quick", "--repeats", "0"], tmp_path)
+    done = _run(["--rows", rows, "--quick", "--repeats", "0", "--initial", "6", "--trajectories", "200"], tmp_path)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     for row in parse_rows(rows):
         record = json.loads((tmp_path / f"row_{row:02d}.json").read_text())
