@@ -104,3 +104,25 @@ def test_jit_of_q_values_matches_eager(small_problem):
         eager = abstraction.q_values(v, "max")
         jitted = jax.jit(lambda a, v: a.q_values(v, "max"))(abstraction, v)
         np.testing.assert_allclose(np.asarray(eager), np.asarray(jitted), atol=1e-14)
+
+
+@pytest.mark.parametrize("kind", ["imdp", "smdp"])
+def test_early_stopping_only_loosens_the_bounds(small_problem, kind):
+    """A loose tolerance must give bounds that contain the tight ones at every state: lower is
+    iterated from below, upper from above. (Iterating upper from below, as a warm start from the
+    lower bound would, under-estimates it when stopped early: checked, so the test has teeth.)"""
+    system, grid, noise = small_problem
+    abstraction = sj.abstract(system, grid, noise, kind)
+    west = np.full(grid.num_cells, 4)  # drive into the left wall: p_up well below 1 on most cells
+    loose, tight = (sj.verify(abstraction, west, tol=tol) for tol in (3e-2, 1e-10))
+    slack = loose.rounding_allowance + tight.rounding_allowance  # each widened by its own allowance
+    assert np.all(np.asarray(loose.lower) <= np.asarray(tight.lower) + slack)
+    assert np.all(np.asarray(loose.upper) >= np.asarray(tight.upper) - slack)
+    nt = grid.state_labels == NONTERMINAL
+    assert np.mean(np.asarray(tight.upper)[nt]) < 0.9
+    assert loose.gap >= tight.gap and loose.evaluation_iterations < tight.evaluation_iterations
+
+    from smdpjax.synthesis import value_iteration
+    fixed = abstraction.restrict(jnp.asarray(west[np.asarray(abstraction.rows)], jnp.int32))
+    from_below, _, _ = value_iteration.evaluate(fixed, tight.lower, "max", 3e-2, 100_000)
+    assert np.any(np.asarray(from_below) < np.asarray(tight.upper) - 1e-6)
