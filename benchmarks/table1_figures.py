@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .paper_table1 import KIND_NAMES, KIND_ORDER, PAPER, TO, row_spec
+from .paper_table1 import KIND_NAMES, KIND_ORDER, PAPER, ROWS, TO, row_spec
 from .table1 import case_study, load_results
 
 COLORS = {"imdp": "tab:blue", "2imdp": "tab:orange", "mimdp": "tab:green", "smdp": "tab:red"}
@@ -111,7 +111,8 @@ def metric_plots(results: dict, system: str, xkey: str, xlabel: str, out: Path):
             mine = [(results[r][xkey], results[r][key] / (1e6 if key == "memory_bytes" else 1))
                     for r in rows if r in ok and row_spec(r).kind == kind and key in results[r]]
             theirs = [(_paper_x(r, xkey), getattr(PAPER[r], paper_key[key]) * paper_scale)
-                      for r in rows if row_spec(r).kind == kind and getattr(PAPER[r], paper_key[key]) not in (None, TO)]
+                      for r in ROWS if row_spec(r).system == system and row_spec(r).kind == kind
+                      and getattr(PAPER[r], paper_key[key]) not in (None, TO)]
             if mine:
                 ax.plot(*zip(*mine), "o-", color=COLORS[kind], label=f"{KIND_NAMES[kind]} (ours)")
             if theirs:
