@@ -54,7 +54,8 @@ def test_quick_rows_run_render_and_resume(tmp_path):
         assert record["p_mc_avg"] <= record["p_up_avg"] + record["mc_tolerance"]
         assert record["t_abs_s"] > 0 and record["t_syn_s"] > 0 and record["memory_bytes"] > 0
     table = (tmp_path / "table1.md").read_text()
-    lines = {int(line.split("|")[1]): line for line in table.splitlines() if line.split("|")[1].strip().isdigit()}
+    rows_md = [line for line in table.splitlines() if line.startswith("| ") and line.split("|")[1].strip().isdigit()]
+    lines = {int(line.split("|")[1]): line for line in rows_md}
     assert sorted(lines) == [4, 20, 29, 32]
     assert all("yes (" in line for line in lines.values())  # Monte Carlo inside the bounds
     assert "ok (" in lines[29] and "ok (" in lines[32]  # Theorem 3 order checked between rows 29 and 32
