@@ -284,7 +284,7 @@ def render(out: Path, order_tol: float = 1e-4) -> str:
                                      else f"{paper / ours:.0f}x" if paper / ours >= 10 else f"{paper / ours:.1f}x")
         mc = "-"
         if status == "ok":
-            mc = (f"{'yes' if r['mc_in_bounds'] else 'NO'} (+-{r['mc_tolerance']:.3f}; "
+            mc = (f"{'yes' if r['mc_in_bounds'] else 'NO'} (+-{r['mc_tolerance']:.2g}; "
                   f"{r['mc_cells_in_bounds']}/{r['mc_cells']} cells)")
         gap = violations.get(row, np.nan)
         order = "-" if np.isnan(gap) else (f"ok ({gap:.1e})" if gap <= order_tol else f"VIOLATED by {gap:.1e}")
