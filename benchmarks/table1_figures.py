@@ -83,7 +83,7 @@ def heat_maps(results_dir: Path, results: dict, system: str, out: Path, heading:
             ax.plot(traj[:, b, 0], traj[:, b, 1], color="white" if ok[b] else "red", lw=1)
             ax.plot(traj[0, b, 0], traj[0, b, 1], "o", color="white", ms=3)
         spec = row_spec(row)
-        ax.set_title(f"row {row}: {KIND_NAMES[spec.kind]}, mean p_low {data['lower'][:-1][grid.labels == 0].mean():.3f}")
+        ax.set_title(f"row {row}: {KIND_NAMES[spec.kind]}\nmean p_low {data['lower'][:-1][grid.labels == 0].mean():.3f}")
         ax.set_xlabel("$p_x$")
         ax.set_ylabel("$p_y$")
     fig.colorbar(image, ax=axes[0].tolist(), shrink=0.85, label="$\\underline{p}$")
