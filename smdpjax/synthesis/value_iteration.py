@@ -101,6 +101,29 @@ def evaluate(abstraction, v0, adversary: str, tol, max_iterations: int):
     return v, k, delta
 
 
+@jax.jit
+def certified_start(abstraction, candidate, v0, slack, margin):
+    """A start for ``evaluate(..., "min")`` from a guess of the pessimistic value, if it is
+    provably below it: ``(start (N+1,), certified bool)``, for a single-action abstraction.
+
+    ``start`` is ``candidate - margin`` clipped to [0, 1] on the rows and ``v0`` elsewhere. It is
+    certified when every row with ``start > 0`` gains strictly under one backup: the computed
+    backup less ``slack`` (its rounding bound) is still ``>= start``, so the exact operator T has
+    ``T(start) > start`` there (and ``T(start) >= 0 = start`` on the other rows). Then ``start``
+    lies below the least fixed point v* (the strategy's true value): let sigma be the
+    adversary's minimizing choice at v* and d = start - v*, which is <= 0 on terminal states.
+    If M = max d > 0, take a row s with d(s) = M; start(s) > 0, so
+    start(s) < T(start)(s) <= sigma(s) . start, i.e. d(s) < sigma(s) . d <= M: a contradiction.
+    (Strictness is what rules out a strategy that idles in a loop: there no state can gain.)
+    Iterates from a certified start rise monotonically and stay lower bounds.
+    """
+    rows = abstraction.rows
+    start = v0.at[rows].set(jnp.clip(candidate[rows] - margin, 0.0, 1.0))
+    q = abstraction.q_values(start, "min")[:, 0]
+    gains = (start[rows] == 0.0) | (q - slack >= start[rows])
+    return start, jnp.all(gains)
+
+
 @functools.partial(jax.jit, static_argnames=("horizon",))
 def finite_horizon(abstraction, v0, horizon: int, policy=None):
     """T = ``horizon`` backups. ``policy``: ``None`` (optimized, time-dependent), ``(R,)``
