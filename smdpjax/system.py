@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 
 import jax
@@ -67,9 +68,9 @@ class System:
             raise ValueError(f"dynamics(x {x0.shape}, u {self.actions[0].shape}, w {w.shape}) failed: {exc}") from exc
         if out.shape != (n,):
             raise ValueError(f"dynamics must return shape ({n},) for a state of shape ({n},), got {out.shape}")
-        xs = jnp.repeat(jnp.asarray(probe_x), self.num_actions, axis=0)
-        acts = jnp.tile(jnp.arange(self.num_actions), probe_x.shape[0])
-        nxt = self.step(xs, acts, jnp.broadcast_to(w, (xs.shape[0], w.shape[0])))
+        xs = np.repeat(np.asarray(probe_x), self.num_actions, axis=0)
+        acts = np.tile(np.arange(self.num_actions), probe_x.shape[0])
+        nxt = _probe(self.dynamics)(xs, self.actions[acts], w)
         bad = ~np.all(np.isfinite(np.asarray(nxt)), axis=-1)
         if np.any(bad):
             i = int(np.flatnonzero(bad)[0])
@@ -79,3 +80,9 @@ class System:
     def __repr__(self):
         name = getattr(self.dynamics, "__name__", type(self.dynamics).__name__)
         return f"System(dynamics={name}, |A|={self.num_actions}, m={self.actions.shape[1]}, noise={self.noise!r})"
+
+
+@functools.lru_cache(maxsize=64)
+def _probe(dynamics):
+    """``f`` over a batch of states and inputs at one noise value, compiled once per function."""
+    return jax.jit(jax.vmap(dynamics, in_axes=(0, 0, None)))
