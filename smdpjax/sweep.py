@@ -88,18 +88,23 @@ def solve(abstraction, tol: float = 1e-6, max_iterations: int = 100_000) -> Batc
     """``synthesize(abstraction, tol=tol)`` as one pure, jittable and vmappable function.
 
     Returns a ``BatchSolution`` without the batch axis. Reach-avoid, unbounded horizon, no
-    relaxation warm start (SMDP and IMDP have none).
+    relaxation warm start (SMDP and IMDP have none); the strategy's evaluation starts from the
+    same certified start as in ``synthesize``.
     """
     v0 = abstraction.initial_values()
     lower_opt, policy_rows, k_opt, d_opt = value_iteration.optimize_lower(abstraction, v0, tol, max_iterations)
     fixed = abstraction.restrict(policy_rows)
-    lower, k_lo, d_lo = value_iteration.evaluate(fixed, v0, "min", tol, max_iterations)
+    # The certified warm start of ``synthesize`` (v0 itself when no margin passes).
+    start, _, k_check = value_iteration.warm_start(fixed, lower_opt, v0, 2.0 * _rounding_per_backup(abstraction), tol)
+    lower, k_lo, d_lo = value_iteration.evaluate(fixed, start, "min", tol, max_iterations)
+    k_lo = k_lo + k_check
     upper, k_up, d_up = value_iteration.evaluate(fixed, value_iteration.top_values(abstraction), "max", tol,
                                                  max_iterations)
     allowance = _rounding_per_backup(abstraction) * (k_opt + k_lo + k_up)
     nonterminal = abstraction.labels == NONTERMINAL
     widen = lambda v, sign: jnp.where(nonterminal, jnp.clip(v + sign * allowance, 0.0, 1.0), v)
     policy = jnp.zeros(abstraction.num_states, jnp.int32).at[abstraction.rows].set(policy_rows)
+    lower_opt = jnp.maximum(lower_opt, lower)
     return BatchSolution(lower=widen(lower, -1), upper=widen(upper, +1), lower_optimal=widen(lower_opt, -1),
                          policy=policy, iterations=k_opt, evaluation_iterations=k_lo + k_up,
                          converged=(d_opt <= tol) & (d_lo <= tol) & (d_up <= tol), upper_change=d_up,

@@ -131,6 +131,7 @@ def _optimize(abstraction, v0, tol, max_iterations):
 def _pessimistic(abstraction, v0, policy_rows, tol, max_iterations, guess=None):
     """The strategy's value against the minimizing adversary, iterated from below: from a
     certified ``guess`` (see ``_warm_start``), else from p^0 or from a relaxation's value."""
+    k_check = 0  # backups spent on checking the guess (counted in the rounding allowance)
     if guess is not None:
         start, k_check = _warm_start(abstraction, v0, policy_rows, guess, tol)
         if start is not None:
@@ -142,13 +143,7 @@ def _pessimistic(abstraction, v0, policy_rows, tol, max_iterations, guess=None):
     if relaxation is not None:
         start, k0, _ = _pessimistic(relaxation, v0, policy_rows, tol, max_iterations)
     lo, k, delta = value_iteration.evaluate(abstraction.restrict(policy_rows), start, "min", tol, max_iterations)
-    return lo, int(k) + k0, bool(delta <= tol)
-
-
-# Margins tried below the optimization's value, in units of the backup's rounding bound, while
-# they stay under ``tol``: rows whose value has stopped changing gain under a backup only through
-# the margin, scaled by their probability of reaching a terminal state.
-_WARM_MARGINS = tuple(10.0 ** k for k in range(2, 13))
+    return lo, int(k) + k0 + k_check, bool(delta <= tol)
 
 
 def _warm_start(abstraction, v0, policy_rows, guess, tol):
@@ -162,17 +157,9 @@ def _warm_start(abstraction, v0, policy_rows, guess, tol):
     puts it below the least fixed point. Evaluating from it then takes the few iterations left
     instead of the many that a start from p^0 needs. Returns ``(start or None, backups spent)``.
     """
-    restricted = abstraction.restrict(policy_rows)
     slack = 2.0 * abstraction.rounding_per_backup()
-    tried = 0
-    for margin in (m * slack for m in _WARM_MARGINS):
-        if margin > tol and tried:
-            break
-        tried += 1
-        start, certified = value_iteration.certified_start(restricted, guess, v0, slack, margin)
-        if bool(certified):
-            return start, tried
-    return None, tried
+    start, certified, tries = value_iteration.warm_start(abstraction.restrict(policy_rows), guess, v0, slack, tol)
+    return (start if bool(certified) else None), int(tries)
 
 
 def _optimistic(abstraction, policy_rows, tol, max_iterations):

@@ -124,6 +124,33 @@ def certified_start(abstraction, candidate, v0, slack, margin):
     return start, jnp.all(gains)
 
 
+# Margins tried below the guess, in units of the backup's rounding bound, while they stay under
+# ``tol`` (the first is always tried): rows whose value has stopped changing gain under a backup
+# only through the margin, scaled by their probability of reaching a terminal state.
+WARM_MARGINS = tuple(10.0 ** k for k in range(2, 13))
+
+
+@jax.jit
+def warm_start(abstraction, guess, v0, slack, tol):
+    """``certified_start`` with the first margin of ``WARM_MARGINS`` (times ``slack``) that passes.
+
+    Returns ``(start, certified, backups spent)``; ``start`` is ``v0`` when none passes.
+    """
+    margins = slack * jnp.asarray(WARM_MARGINS, v0.dtype)
+
+    def cond(state):
+        i, _, done = state
+        return ~done & (i < margins.shape[0]) & ((i == 0) | (margins[jnp.minimum(i, margins.shape[0] - 1)] <= tol))
+
+    def body(state):
+        i, _, _ = state
+        start, ok = certified_start(abstraction, guess, v0, slack, margins[i])
+        return i + 1, jnp.where(ok, start, v0), ok
+
+    tries, start, certified = jax.lax.while_loop(cond, body, (jnp.int32(0), v0, jnp.asarray(False)))
+    return start, certified, tries
+
+
 @functools.partial(jax.jit, static_argnames=("horizon",))
 def finite_horizon(abstraction, v0, horizon: int, policy=None):
     """T = ``horizon`` backups. ``policy``: ``None`` (optimized, time-dependent), ``(R,)``

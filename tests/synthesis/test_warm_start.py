@@ -6,7 +6,8 @@ import pytest
 
 import smdpjax as sj
 from smdpjax.partition import AVOID, NONTERMINAL, REACH
-from smdpjax.synthesis import _WARM_MARGINS, _pessimistic, _warm_start
+from smdpjax.synthesis import _pessimistic, _warm_start
+from smdpjax.synthesis.value_iteration import WARM_MARGINS
 
 
 def idle_or_gamble():
@@ -84,7 +85,7 @@ def test_synthesis_uses_the_warm_start_and_stays_below_the_cold_value(kind):
     # Where no margin up to tol certifies the guess (here the IMDP and 2I-MDP, whose minimizing
     # adversary keeps nearly all mass among states whose values no longer move), evaluation falls
     # back to the cold start, having spent only the checks.
-    assert warm.evaluation_iterations <= cold.evaluation_iterations + len(_WARM_MARGINS)
+    assert warm.evaluation_iterations <= cold.evaluation_iterations + len(WARM_MARGINS)
     if kind == "smdp":
         assert warm.evaluation_iterations < cold.evaluation_iterations / 2
     assert np.all(np.asarray(warm.lower_optimal) >= lo_w)
