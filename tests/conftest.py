@@ -1,7 +1,11 @@
 import os
 
-import jax
-import pytest
+# Test workers share the machine (pytest-xdist): on a GPU, do not let each one reserve most of
+# its memory up front.
+os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+
+import jax  # noqa: E402
+import pytest  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
