@@ -68,7 +68,7 @@ def test_certificate_rejects_every_start_above_the_least_fixed_point():
     assert certified >= 1  # the check is not simply refusing everything
 
 
-@pytest.mark.parametrize("kind", ["imdp", "2imdp", "smdp"])
+@pytest.mark.parametrize("kind", ["imdp", "smdp"])
 def test_synthesis_uses_the_warm_start_and_stays_below_the_cold_value(kind):
     def drift(x, u, w):
         return x + 0.1 * (jnp.array([jnp.cos(u[0]), jnp.sin(u[0])]) + w)
@@ -82,7 +82,7 @@ def test_synthesis_uses_the_warm_start_and_stays_below_the_cold_value(kind):
     tight = sj.verify(abstraction, np.asarray(warm.policy), tol=1e-13)
     assert np.all(lo_w <= np.asarray(tight.lower) + 2 * tight.rounding_allowance + 1e-15)
     assert np.max(np.abs(lo_w - lo_c)) < 1e-4
-    # Where no margin up to tol certifies the guess (here the IMDP and 2I-MDP, whose minimizing
+    # Where no margin up to tol certifies the guess (here the IMDP, whose minimizing
     # adversary keeps nearly all mass among states whose values no longer move), evaluation falls
     # back to the cold start, having spent only the checks.
     assert warm.evaluation_iterations <= cold.evaluation_iterations + len(WARM_MARGINS)
