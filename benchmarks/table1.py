@@ -89,6 +89,7 @@ def run_row(row: int, args) -> dict:
     study = case_study(spec, args.quick)
     out = Path(args.out)
     result = dict(row=row, system=spec.system, kind=spec.kind, parameter=spec.parameter, value=spec.value,
+                  reach_method=study.reach_method,
                   quick=bool(args.quick), status="running", stage=STAGES[0], n=study.state_grid.n,
                   states=study.state_grid.num_states, actions=study.num_actions, noise_cells=study.noise_grid.num_cells,
                   objective=study.objective, horizon=study.horizon, time_limit_min=args.time_limit,
@@ -104,7 +105,8 @@ def run_row(row: int, args) -> dict:
     policy = study.controller
     stage = lambda fn: timed_stage(fn, args.repeats, args.cold_cap)
     clusters, t_reach, runs, warm = stage(lambda: compute_grid_clusters(study.system, study.state_grid,
-                                                                        study.noise_grid, policy=policy))
+                                                                        study.noise_grid, policy=policy,
+                                                                        method=study.reach_method))
     save(STAGES[1], t_reach_s=t_reach, t_reach_runs=runs, t_reach_warm=warm)
     options = {"lp_backend": args.lp_backend} if spec.kind == "mimdp" else {}
     abstraction, t_build, runs, warm = stage(lambda: build(spec.kind, study.state_grid, clusters, **options))

@@ -22,6 +22,10 @@ class CaseStudy:
         controller: ``(N,)`` fixed action index per cell for verification (abstract only that
             action, ``|A| = 1``), or ``None`` when a controller is synthesized.
         max_steps: cap on Monte Carlo trajectory length.
+        reach_method: the reachable-set enclosure to use (``abstract(..., method=)``). Every
+            method is sound; ``"natural"`` is chosen where it gives the same index boxes as
+            ``"both"`` on the system (measured, and checked by the tests), at a fraction of the
+            cost, since the centred form only helps where a variable occurs several times.
     """
 
     name: str
@@ -32,11 +36,19 @@ class CaseStudy:
     horizon: int | None = None
     controller: np.ndarray | None = None
     max_steps: int = 1000
+    reach_method: str = "both"
 
     @property
     def num_actions(self) -> int:
         """|A| of the abstraction: 1 when a fixed controller is verified."""
         return 1 if self.controller is not None else self.system.num_actions
+
+    def abstract(self, kind: str = "smdp", **options):
+        """``smdpjax.abstract`` of this problem (the controller's actions only, if there is one)."""
+        from ..abstraction import abstract
+
+        return abstract(self.system, self.state_grid, self.noise_grid, kind, method=self.reach_method,
+                        policy=self.controller, **options)
 
     def solve(self, abstraction, tol: float = 1e-6):
         """``synthesize`` (reach-avoid) or ``verify`` the fixed controller (safety)."""
