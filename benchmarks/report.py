@@ -84,7 +84,8 @@ def render(dirs) -> str:
             met = sum(s >= target for s in speedups)
             out.append(f"\nSMDP rows: T_abs + T_syn speed-up over the paper min {min(speedups):.0f}x, median "
                        f"{np.median(speedups):.0f}x, max {max(speedups):.0f}x; target {target:.0f}x met on {met} of "
-                       f"{len(smdp)} rows ({', '.join(str(t['row']) for t in smdp)}).")
+                       f"{len(smdp)} rows (met: {', '.join(str(t['row']) for t, x in zip(smdp, speedups) if x >= target) or 'none'}; "
+                       f"not met: {', '.join(str(t['row']) for t, x in zip(smdp, speedups) if x < target) or 'none'}).")
         full = [t for t in table if t["memory_mb"] is not None and not t["quick"]]
         if full:
             below = [t["row"] for t in full if t["memory_mb"] < t["paper_memory_mb"]]
