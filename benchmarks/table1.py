@@ -202,6 +202,9 @@ def _run_child(row: int, args, out: Path, bar) -> None:
                   time_limit_min=args.time_limit)
     if not timed_out:
         record["error"] = (out / f"row_{row:02d}.log").read_text()[-2000:]
+        if child.returncode is not None and child.returncode < 0:  # e.g. SIGKILL from the OOM killer
+            record["error"] += (f"\nkilled by signal {-child.returncode}"
+                                + (" (most likely out of memory)" if child.returncode == -9 else ""))
     _write(out / f"row_{row:02d}.json", record)
     partial.unlink(missing_ok=True)
     bar.write(f"row {row}: {record['status']} in stage {record.get('stage', 'starting')!r} after "
