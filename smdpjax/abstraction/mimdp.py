@@ -61,6 +61,7 @@ from .imdp import IMDP, row_chunks
 from .lp import ClusterLPs
 
 _BOUND_ROWS_PER_CHUNK = 64
+_MEMBER_ROWS_PER_CHUNK = 1024
 
 
 @pytree_dataclass
@@ -133,27 +134,33 @@ class MIMDP(AbstractionMixin):
         prob = jnp.asarray(clusters.prob)
         rest = float(clusters.prob_rest)
         lengths = max_lengths(boxes)
-        members = np.concatenate([np.asarray(cluster_members(grid, part, lengths)) for part in row_chunks(boxes)])
-        members = np.where(members <= n_cells, members, sentinel)
         informed_lo, informed_up = informed_cluster_bounds(boxes, prob, rest, grid.cells)
 
         succ = np.asarray(imdp.successors)
         lower = np.asarray(imdp.lower)
         upper = np.asarray(imdp.upper)
-        cluster_ids, bounds_lo, bounds_up = members, np.asarray(informed_lo), np.asarray(informed_up)
         if extra_clusters is not None:
             succ, lower, upper = _extend_successors(succ, lower, upper, extra, rest, sentinel)
-            ex_lo, ex_up = member_cluster_bounds(members, extra, np.asarray(prob), rest, sentinel)
-            width = max(members.shape[-1], extra.shape[-1])
-            pad = lambda a: np.pad(a, [(0, 0)] * 3 + [(0, width - a.shape[-1])], constant_values=sentinel)
-            cluster_ids = np.concatenate([pad(members), pad(extra)], axis=2)
-            bounds_lo = np.concatenate([bounds_lo, ex_lo], axis=2)
-            bounds_up = np.concatenate([bounds_up, ex_up], axis=2)
             imdp = dataclasses.replace(imdp, successors=jnp.asarray(succ, jnp.int32), lower=jnp.asarray(lower),
                                        upper=jnp.asarray(upper))
-
-        slots = _slots_of(succ, cluster_ids, sentinel)
-        slots, clo, cup = _distinct_clusters(slots, bounds_lo, bounds_up, succ.shape[-1])
+        # Member lists are expanded a chunk of rows at a time: all of them at once is R x A x C_b x K
+        # ids (1.1e9 on the 3-D unicycle at |C| = 65, more than 24 GB with the temporaries).
+        pieces = []
+        for start in range(0, num_rows, _MEMBER_ROWS_PER_CHUNK):
+            stop = min(start + _MEMBER_ROWS_PER_CHUNK, num_rows)
+            part = jax.tree.map(lambda a: a[start:stop], boxes)
+            members = np.asarray(cluster_members(grid, part, lengths))
+            members = np.where(members <= n_cells, members, sentinel)
+            ids, b_lo, b_up = members, np.asarray(informed_lo[start:stop]), np.asarray(informed_up[start:stop])
+            if extra_clusters is not None:
+                ex_lo, ex_up = member_cluster_bounds(members, extra[start:stop], np.asarray(prob), rest, sentinel)
+                width = max(members.shape[-1], extra.shape[-1])
+                pad = lambda a: np.pad(a, [(0, 0)] * 3 + [(0, width - a.shape[-1])], constant_values=sentinel)
+                ids = np.concatenate([pad(members), pad(extra[start:stop])], axis=2)
+                b_lo, b_up = np.concatenate([b_lo, ex_lo], axis=2), np.concatenate([b_up, ex_up], axis=2)
+            slots = _slots_of(succ[start:stop], ids, sentinel)
+            pieces.append(_distinct_clusters(slots, b_lo, b_up, succ.shape[-1]))
+        slots, clo, cup = _concat_padded(pieces, succ.shape[-1])
         k = succ.shape[-1]
         slots = slots.astype(np.int16 if k < np.iinfo(np.int16).max else np.int32)
         flat = lambda a: a.reshape(num_rows * num_actions, *a.shape[2:])
@@ -407,6 +414,20 @@ def _slots_of(succ, ids, sentinel):
     if np.any((q < sentinel) & ~found):
         raise AssertionError("a cluster member is missing from the successor list")
     return np.where(found, pos, k).reshape(ids.shape)
+
+
+def _concat_padded(pieces, k):
+    """Concatenate per-chunk ``(slots, lo, up)`` of ``_distinct_clusters`` along rows, padding the
+    cluster count and size to the widest chunk's (padding: empty clusters, bounds [0, 1])."""
+    j = max(p[0].shape[2] for p in pieces)
+    size = max(p[0].shape[3] for p in pieces)
+    out = ([], [], [])
+    for slots, lo, up in pieces:
+        dj, ds = j - slots.shape[2], size - slots.shape[3]
+        out[0].append(np.pad(slots, [(0, 0), (0, 0), (0, dj), (0, ds)], constant_values=k))
+        out[1].append(np.pad(lo, [(0, 0), (0, 0), (0, dj)], constant_values=0.0))
+        out[2].append(np.pad(up, [(0, 0), (0, 0), (0, dj)], constant_values=1.0))
+    return tuple(np.concatenate(parts) for parts in out)
 
 
 def _distinct_clusters(slots, lo, up, k):

@@ -330,3 +330,25 @@ def test_pytree_leaves_and_repr(small):
     assert "MIMDP(" in repr(mimdp) and mimdp.kind == "mimdp"
     fixed = mimdp.restrict(jnp.zeros(mimdp.num_rows, jnp.int32))
     assert fixed.lps is mimdp.lps and fixed.lp_index.shape == (mimdp.num_rows, 1)
+
+
+@pytest.mark.parametrize("chunk", [1, 5])
+@pytest.mark.parametrize("with_extra", [False, True])
+def test_member_chunks_do_not_change_the_structure(small_clusters, monkeypatch, with_extra, chunk):
+    """Cluster member lists are expanded a chunk of rows at a time (memory). Chunks of 1 row (whose
+    widest cluster differs from row to row, so chunks are padded) and of 5 rows (an uneven last
+    chunk) give the same arrays as one chunk."""
+    from smdpjax.abstraction import mimdp as mimdp_module
+
+    grid, clusters, extra = small_clusters
+    extra = extra if with_extra else None
+    whole = MIMDP.from_clusters(grid, clusters, extra_clusters=extra)
+    monkeypatch.setattr(mimdp_module, "_MEMBER_ROWS_PER_CHUNK", chunk)
+    chunked = MIMDP.from_clusters(grid, clusters, extra_clusters=extra)
+    for name in ("cluster_slots", "cluster_lower", "cluster_upper"):
+        a, b = np.asarray(getattr(whole, name)), np.asarray(getattr(chunked, name))
+        assert a.shape == b.shape and a.dtype == b.dtype, name
+        np.testing.assert_array_equal(a, b, err_msg=name)
+    for name in ("successors", "lower", "upper"):
+        np.testing.assert_array_equal(np.asarray(getattr(whole.relaxation, name)),
+                                      np.asarray(getattr(chunked.relaxation, name)), err_msg=name)
