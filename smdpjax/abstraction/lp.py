@@ -47,6 +47,8 @@ import numpy as np
 _REDUNDANT_SLACK = 1e-12
 # Unlisted states whose total capacity is below this are priced by one aggregated variable.
 _NEGLIGIBLE_MASS = 1e-6
+# LPs whose cluster data are prepared together (bounds the (LPs x clusters x members) temporaries).
+_LPS_PER_BLOCK = 4096
 BACKENDS = ("clarabel", "highs")
 
 
@@ -124,26 +126,41 @@ class ClusterLPs:
         self.has_rest = has_rest
         self.cost_width = width + int(buckets.max(initial=0)) + 1  # listed slots, then cheapest unlisted
 
-        # cluster sides, vectorized over (LP, cluster): which are implied, and their bounds in y
+        free_mass = 1.0 - lower.sum(-1)
+        is_var = listed & (cap > 0)
+        var_of_slot = np.where(is_var, np.cumsum(is_var, axis=1) - 1, -1)
+        self._lps = []
+        # Cluster sides, vectorized over (LP, cluster, member) a block of LPs at a time (all at once
+        # is several (LPs x clusters x members) float64 temporaries: ~9 GB each at 224k LPs).
+        for first in range(0, self.num_lps, _LPS_PER_BLOCK):
+            block = slice(first, min(first + _LPS_PER_BLOCK, self.num_lps))
+            self._build_block(block, slots[block], clo[block], cup[block], lower[block], cap[block], free_mass[block],
+                              is_var[block], var_of_slot[block], buckets[block], has_rest[block], n_unlisted[block])
+        self.num_vars = np.array([lp["caps"].size for lp in self._lps])
+        self.num_cluster_rows = np.array([np.isfinite(lp["lo"]).sum() + np.isfinite(lp["hi"]).sum()
+                                          for lp in self._lps])
+        # constraint rows in the Clarabel form (equality, two bounds per variable, cluster sides)
+        self.num_rows = 1 + 2 * self.num_vars + self.num_cluster_rows
+        self.nnz = int(sum(3 * lp["caps"].size + lp["var"].size * 2 for lp in self._lps))
+
+    def _build_block(self, block, slots, clo, cup, lower, cap, free_mass, is_var, var_of_slot, buckets, has_rest,
+                     n_unlisted):
+        """Append the per-LP data of the LPs in ``block`` (arrays already sliced to it)."""
+        width, rest = self.width, self.rest
         valid = slots < width
         at = np.minimum(slots, width - 1)
         take = lambda a: np.where(valid, np.take_along_axis(a[:, None, :], at, axis=2), 0.0)
         low_fixed = take(lower).sum(-1)
         room = take(cap).sum(-1)
-        free_mass = 1.0 - lower.sum(-1)
         need = np.minimum(clo - low_fixed, room)
         allow = np.maximum(cup - low_fixed, 0.0)
-        is_var = listed & (cap > 0)
-        var_of_slot = np.where(is_var, np.cumsum(is_var, axis=1) - 1, -1)
         member_var = np.where(valid, np.take_along_axis(var_of_slot[:, None, :], at, axis=2), -1)
         has_var = np.any(member_var >= 0, axis=-1)
         use_lo = (clo - low_fixed > _REDUNDANT_SLACK) & has_var
         use_hi = (allow < np.minimum(room, free_mass[:, None]) - _REDUNDANT_SLACK) & has_var
         row_lo = np.where(use_lo, need, -np.inf)
         row_hi = np.where(use_hi, allow, np.inf)
-
-        self._lps = []
-        for p in range(self.num_lps):
+        for p in range(block.stop - block.start):
             var_slots = np.flatnonzero(is_var[p])
             b_p = int(buckets[p])
             caps = np.concatenate([cap[p, var_slots], np.full(b_p, rest),
@@ -156,12 +173,6 @@ class ClusterLPs:
                 caps=caps, cost_src=cost_src.astype(np.int64), free_mass=float(free_mass[p]), cluster=rows,
                 ptr=np.concatenate([[0], np.cumsum(keep.sum(1))]), var=members[keep].astype(np.int64),
                 lo=row_lo[p][rows], hi=row_hi[p][rows]))
-        self.num_vars = np.array([lp["caps"].size for lp in self._lps])
-        self.num_cluster_rows = np.array([np.isfinite(lp["lo"]).sum() + np.isfinite(lp["hi"]).sum()
-                                          for lp in self._lps])
-        # constraint rows in the Clarabel form (equality, two bounds per variable, cluster sides)
-        self.num_rows = 1 + 2 * self.num_vars + self.num_cluster_rows
-        self.nnz = int(sum(3 * lp["caps"].size + lp["var"].size * 2 for lp in self._lps))
 
     def _conic(self, p):
         """LP ``p`` in Clarabel's form ``A y + s = b``, ``s`` in {0} x R_+^(m-1):

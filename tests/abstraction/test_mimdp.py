@@ -352,3 +352,21 @@ def test_member_chunks_do_not_change_the_structure(small_clusters, monkeypatch, 
     for name in ("successors", "lower", "upper"):
         np.testing.assert_array_equal(np.asarray(getattr(whole.relaxation, name)),
                                       np.asarray(getattr(chunked.relaxation, name)), err_msg=name)
+
+
+def test_lp_blocks_do_not_change_the_lps(small_clusters, monkeypatch):
+    """The per-LP data are prepared a block of LPs at a time (memory); blocks of 7 LPs give the
+    same LPs as one block."""
+    from smdpjax.abstraction import lp as lp_module
+
+    grid, clusters, extra = small_clusters
+    whole = MIMDP.from_clusters(grid, clusters, extra_clusters=extra).lps
+    monkeypatch.setattr(lp_module, "_LPS_PER_BLOCK", 7)
+    blocked = MIMDP.from_clusters(grid, clusters, extra_clusters=extra).lps
+    assert whole.num_lps % 7 != 0 and len(whole._lps) == len(blocked._lps) == whole.num_lps
+    for a, b in zip(whole._lps, blocked._lps):
+        assert a.keys() == b.keys()
+        for key in a:
+            np.testing.assert_array_equal(np.asarray(a[key]), np.asarray(b[key]), err_msg=key)
+    np.testing.assert_array_equal(whole.num_rows, blocked.num_rows)
+    assert whole.nnz == blocked.nnz
