@@ -131,22 +131,22 @@ def _optimize(abstraction, v0, tol, max_iterations):
 def _pessimistic(abstraction, v0, policy_rows, tol, max_iterations, guess=None):
     """The strategy's value against the minimizing adversary, iterated from below: from a
     certified ``guess`` (see ``_warm_start``), else from p^0 or from a relaxation's value."""
+    restricted = abstraction.restrict(policy_rows)
     k_check = 0  # backups spent on checking the guess (counted in the rounding allowance)
     if guess is not None:
-        start, k_check = _warm_start(abstraction, v0, policy_rows, guess, tol)
+        start, k_check = _warm_start(abstraction, restricted, v0, guess, tol)
         if start is not None:
-            lo, k, delta = value_iteration.evaluate(abstraction.restrict(policy_rows), start, "min", tol,
-                                                    max_iterations)
+            lo, k, delta = value_iteration.evaluate(restricted, start, "min", tol, max_iterations)
             return lo, int(k) + k_check, bool(delta <= tol)
     relaxation = getattr(abstraction, "relaxation", None)
     start, k0 = v0, 0
     if relaxation is not None:
         start, k0, _ = _pessimistic(relaxation, v0, policy_rows, tol, max_iterations)
-    lo, k, delta = value_iteration.evaluate(abstraction.restrict(policy_rows), start, "min", tol, max_iterations)
+    lo, k, delta = value_iteration.evaluate(restricted, start, "min", tol, max_iterations)
     return lo, int(k) + k0 + k_check, bool(delta <= tol)
 
 
-def _warm_start(abstraction, v0, policy_rows, guess, tol):
+def _warm_start(abstraction, restricted, v0, guess, tol):
     """A certified lower start for the strategy's pessimistic value, or ``None``.
 
     The optimization's last iterate ``guess`` is close to what the strategy achieves against the
@@ -155,10 +155,11 @@ def _warm_start(abstraction, v0, policy_rows, guess, tol):
     reaching the goal). ``value_iteration.certified_start`` makes it one: the start, a little
     below ``guess``, must gain strictly under one exact backup wherever it is positive, which
     puts it below the least fixed point. Evaluating from it then takes the few iterations left
-    instead of the many that a start from p^0 needs. Returns ``(start or None, backups spent)``.
+    instead of the many that a start from p^0 needs. ``restricted``: ``abstraction`` under the
+    strategy (``restrict``). Returns ``(start or None, backups spent)``.
     """
     slack = 2.0 * abstraction.rounding_per_backup()
-    start, certified, tries = value_iteration.warm_start(abstraction.restrict(policy_rows), guess, v0, slack, tol)
+    start, certified, tries = value_iteration.warm_start(restricted, guess, v0, slack, tol)
     return (start if bool(certified) else None), int(tries)
 
 

@@ -26,7 +26,7 @@ def test_an_idling_strategy_gets_no_credit_from_the_guess():
     v0 = imdp.initial_values()
     guess = jnp.array([0.5, 1.0, 0.0])
     idle = jnp.array([0], jnp.int32)
-    assert _warm_start(imdp, v0, idle, guess, 1e-6)[0] is None
+    assert _warm_start(imdp, imdp.restrict(idle), v0, guess, 1e-6)[0] is None
     lower, _, _ = _pessimistic(imdp, v0, idle, 1e-9, 1000, guess)
     assert float(lower[0]) == 0.0
 
@@ -35,8 +35,8 @@ def test_a_guess_above_the_value_is_refused_and_one_below_is_taken():
     imdp = idle_or_gamble()
     v0 = imdp.initial_values()
     gamble = jnp.array([1], jnp.int32)
-    assert _warm_start(imdp, v0, gamble, jnp.array([0.5 + 1e-6, 1.0, 0.0]), 1e-6)[0] is None
-    start, _ = _warm_start(imdp, v0, gamble, jnp.array([0.4, 1.0, 0.0]), 1e-6)
+    assert _warm_start(imdp, imdp.restrict(gamble), v0, jnp.array([0.5 + 1e-6, 1.0, 0.0]), 1e-6)[0] is None
+    start, _ = _warm_start(imdp, imdp.restrict(gamble), v0, jnp.array([0.4, 1.0, 0.0]), 1e-6)
     assert start is not None and 0.4 - 1e-7 < float(start[0]) < 0.4
     lower, _, _ = _pessimistic(imdp, v0, gamble, 1e-12, 1000, jnp.array([0.4, 1.0, 0.0]))
     assert 0.5 - 1e-12 <= float(lower[0]) <= 0.5
@@ -61,7 +61,7 @@ def test_certificate_rejects_every_start_above_the_least_fixed_point():
     for scale in (0.0, 1e-9, 1e-6, 1e-3, 1e-1):
         for _ in range(3):
             guess = jnp.asarray(np.clip(truth + scale * rng.standard_normal(truth.shape), 0, 1))
-            start, _ = _warm_start(smdp, v0, policy, guess, 1e-3)
+            start, _ = _warm_start(smdp, smdp.restrict(policy), v0, guess, 1e-3)
             if start is not None:
                 certified += 1
                 assert np.all(np.asarray(start) <= truth + 1e-9)
