@@ -46,7 +46,7 @@ def _finish(abstraction, lower, upper, policy_rows, lower_opt, iterations, eval_
 
 
 def synthesize(abstraction, horizon: int | None = None, tol: float = 1e-6, *, objective: str = "reach_avoid",
-               max_iterations: int = 100_000) -> Solution:
+               max_iterations: int = 100_000, policy_sweeps: int | None = None) -> Solution:
     """Robust dynamic programming: p_low with an optimal strategy, then p_up under it.
 
     Args:
@@ -60,6 +60,11 @@ def synthesize(abstraction, horizon: int | None = None, tol: float = 1e-6, *, ob
         objective: ``"reach_avoid"`` (p^0 = 1 on reach cells) or ``"safety"`` (stay in the safe
             cells for ``horizon`` steps; p^0 = 1 on every safe cell).
         max_iterations: cap on each loop for unbounded horizons.
+        policy_sweeps: backups of the current greedy strategy alone after each greedy backup
+            of the optimization (modified policy iteration, see
+            ``value_iteration.optimize_lower``); ``None``: the number of actions; ``0``: plain
+            value iteration. Sound for any value; only the speed and where the optimization
+            stops within ``tol`` change.
 
     Returns:
         ``Solution``. ``lower`` is the certified value of the returned strategy, evaluated
@@ -76,7 +81,9 @@ def synthesize(abstraction, horizon: int | None = None, tol: float = 1e-6, *, ob
     if horizon is not None:
         lo, up, policy = value_iteration.finite_horizon(abstraction, v0, int(horizon))
         return _finish(abstraction, lo, up, policy, lo, horizon, 0, True, 0.0, int(horizon), objective)
-    lo_opt, policy, k, converged = _optimize(abstraction, v0, tol, max_iterations)
+    if policy_sweeps is not None and (int(policy_sweeps) != policy_sweeps or policy_sweeps < 0):
+        raise ValueError(f"policy_sweeps must be None or a non-negative integer, got {policy_sweeps}")
+    lo_opt, policy, k, converged = _optimize(abstraction, v0, tol, max_iterations, policy_sweeps)
     lo, up, k_eval, (converged_eval, change) = _evaluate_both(abstraction, v0, policy, tol, max_iterations,
                                                               guess=lo_opt)
     lo_opt = jnp.maximum(lo_opt, lo)  # both are lower bounds of the optimum (the strategy's value is one)
@@ -118,13 +125,15 @@ def verify(abstraction, policy=None, horizon: int | None = None, tol: float = 1e
     return _finish(abstraction, lo, up, rows_policy, lo, 0, k, converged, change, None, objective)
 
 
-def _optimize(abstraction, v0, tol, max_iterations):
+def _optimize(abstraction, v0, tol, max_iterations, policy_sweeps=None):
     """Optimal lower bound and strategy, warm-started from a relaxation where there is one."""
     relaxation = getattr(abstraction, "relaxation", None)
     start, policy0, k0 = v0, None, 0
     if relaxation is not None:
-        start, policy0, k0, _ = _optimize(relaxation, v0, tol, max_iterations)
-    lo, policy, k, delta = value_iteration.optimize_lower(abstraction, start, tol, max_iterations, policy0)
+        start, policy0, k0, _ = _optimize(relaxation, v0, tol, max_iterations, policy_sweeps)
+    sweeps = None if policy_sweeps is None else int(policy_sweeps)
+    lo, policy, k, delta = value_iteration.optimize_lower(abstraction, start, tol, max_iterations, policy0,
+                                                          policy_sweeps=sweeps)
     return lo, policy, int(k) + int(k0), bool(delta <= tol)
 
 

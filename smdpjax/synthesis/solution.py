@@ -24,7 +24,8 @@ class Solution:
             (``policy[t]`` at time t). Terminal states hold 0.
         lower_optimal: ``(N+1,)`` the optimal robust value max_sigma min_xi (equal to ``lower``
             when the synthesized strategy is optimal; never below it).
-        iterations: Bellman iterations of the optimization (or T).
+        iterations: Bellman backups of the optimization (greedy ones and the cheaper sweeps of
+            the greedy strategy between them, see ``synthesize(policy_sweeps=)``), or T.
         evaluation_iterations: iterations spent evaluating the strategy (0 for finite horizon).
         converged: whether both loops stopped on the tolerance rather than on max_iterations.
         upper_change: sup-norm change of the last upper-bound iteration.
