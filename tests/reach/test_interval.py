@@ -276,6 +276,49 @@ def test_flushed_subnormal_products_are_still_enclosed():
     assert Fraction(float(lo)) <= e <= Fraction(float(hi))
 
 
+def _ulp_neighbourhood(x):
+    """Largest |x* - x| over reals x* that round to x, or that XLA could have flushed to x."""
+    _, exponent = math.frexp(abs(float(x)))  # |x| = m 2^e, m in [1/2, 1): ulp(x) = 2^(e - 53)
+    half_ulp = Fraction(2) ** (exponent - 54) if x != 0 else Fraction(5e-324) / 2
+    return half_ulp + Fraction(float(np.finfo(np.float64).tiny))
+
+
+@pytest.mark.parametrize("rel,abs_", [(0.0, 0.0), (1e-13, 0.0), (0.0, 1e-15), (1e-12, 3e-300)])
+def test_outward_step_covers_rounding_and_widening_exactly(rel, abs_):
+    """``_nudge`` against exact rational arithmetic on values at binade edges, tiny, zero,
+    subnormal and huge: up >= x* + rel|x| + abs_ for every x* that rounds to x (down: mirrored)."""
+    from smdpjax.reach.interval import _nudge
+
+    rng = np.random.default_rng(11)
+    edges = [2.0 ** k for k in (-1022, -1000, -60, -1, 0, 1, 52, 60, 1000, 1023)]
+    values = np.array(edges + [np.nextafter(e, 0.0) for e in edges] + [np.nextafter(e, np.inf) for e in edges]
+                      + [0.0, 5e-324, 1e-310, 0.1, 1 / 3, 1e308, np.finfo(np.float64).max]
+                      + list(rng.standard_normal(40) * 10.0 ** rng.integers(-300, 300, 40)))
+    values = np.concatenate([values, -values])
+    up = np.asarray(jax.jit(lambda v: _nudge(v, True, rel, abs_))(jnp.asarray(values)))
+    down = np.asarray(jax.jit(lambda v: _nudge(v, False, rel, abs_))(jnp.asarray(values)))
+    for x, u, d in zip(values, up, down):
+        widen = Fraction(rel) * abs(Fraction(float(x))) + Fraction(abs_) + _ulp_neighbourhood(x)
+        if np.isfinite(u):
+            assert Fraction(float(u)) >= Fraction(float(x)) + widen, (x, u)
+        else:
+            assert u == np.inf
+        if np.isfinite(d):
+            assert Fraction(float(d)) <= Fraction(float(x)) - widen, (x, d)
+        else:
+            assert d == -np.inf
+
+
+def test_outward_step_of_infinities_and_nan():
+    from smdpjax.reach.interval import _nudge
+
+    big = np.finfo(np.float64).max
+    v = jnp.array([np.inf, -np.inf, np.nan])
+    np.testing.assert_array_equal(np.asarray(_nudge(v, True)), [np.inf, -big, np.nan])
+    np.testing.assert_array_equal(np.asarray(_nudge(v, False)), [big, -np.inf, np.nan])
+    assert float(jax.grad(lambda t: _nudge(t, True, 1e-13, 1e-15))(2.0)) == 1.0
+
+
 # ------------------------------------------------------------------ transforms
 
 def unicycle(x, w):
