@@ -60,10 +60,10 @@ class System:
         ``probe_x: (k, n)`` are states to try with every action and the noise mean; cheap, and it
         catches wrong shapes and NaN/inf before the abstraction spends minutes on them.
         """
-        w = jnp.asarray(self.noise.mean())
-        x0 = jnp.asarray(probe_x[0])
+        w = np.asarray(self.noise.mean())
+        x0 = np.asarray(probe_x[0])
         try:
-            out = jax.eval_shape(self.dynamics, x0, jnp.asarray(self.actions[0]), w)
+            out = _output_shape(self.dynamics, _spec(x0), _spec(np.asarray(self.actions[0])), _spec(w))
         except Exception as exc:  # the user's function failed on shapes: say which ones we passed
             raise ValueError(f"dynamics(x {x0.shape}, u {self.actions[0].shape}, w {w.shape}) failed: {exc}") from exc
         if out.shape != (n,):
@@ -80,6 +80,16 @@ class System:
     def __repr__(self):
         name = getattr(self.dynamics, "__name__", type(self.dynamics).__name__)
         return f"System(dynamics={name}, |A|={self.num_actions}, m={self.actions.shape[1]}, noise={self.noise!r})"
+
+
+def _spec(a) -> jax.ShapeDtypeStruct:
+    return jax.ShapeDtypeStruct(a.shape, jnp.result_type(a.dtype))
+
+
+@functools.lru_cache(maxsize=256)
+def _output_shape(dynamics, *specs):
+    """``jax.eval_shape`` of ``dynamics`` (a trace: cached per function and argument shapes)."""
+    return jax.eval_shape(dynamics, *specs)
 
 
 @functools.lru_cache(maxsize=64)

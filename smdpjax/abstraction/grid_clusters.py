@@ -73,7 +73,7 @@ def compute_grid_clusters(system: System, grid: StateGrid, noise_grid: NoiseGrid
     if method not in ("natural", "centered", "both"):
         raise ValueError(f"unknown reachable-set method {method!r}; expected 'natural', 'centered' or 'both'")
     rows = validate(system, grid, noise_grid)
-    actions = jnp.asarray(system.actions)
+    actions = np.asarray(system.actions)
     if policy is not None:
         policy = np.asarray(policy)
         if policy.shape not in ((grid.num_cells,), (grid.num_states,)) or not np.issubdtype(policy.dtype, np.integer):
@@ -81,7 +81,7 @@ def compute_grid_clusters(system: System, grid: StateGrid, noise_grid: NoiseGrid
                              f"{policy.dtype}")
         if np.any(policy < 0) or np.any(policy >= system.num_actions):
             raise ValueError(f"policy entries must lie in [0, {system.num_actions})")
-        actions = actions[jnp.asarray(policy[rows])][:, None, :]  # (R, 1, m)
+        actions = actions[policy[rows]][:, None, :]  # (R, 1, m)
     prob, prob_rest = noise_grid.probabilities(system.noise)
     w_lo, w_hi = noise_grid.boxes()
     per_row = (1 if policy is not None else system.num_actions) * noise_grid.num_bounded
@@ -108,16 +108,21 @@ def compute_grid_clusters(system: System, grid: StateGrid, noise_grid: NoiseGrid
                                                                                  rows.size - 1)])
         with on_mesh():
             boxes, has_nan = run(x_lo, x_hi, row_actions, w_lo, w_hi)
-        trim = (lambda a: a[:idx.size]) if mesh is None else (lambda a: np.asarray(a)[:idx.size])  # gathered
-        parts.append(jax.tree.map(trim, boxes))
-        nan_rows.append(np.asarray(has_nan[:idx.size]))
+        if mesh is not None or idx.size < chunk:
+            trim = (lambda a: a[:idx.size]) if mesh is None else (lambda a: np.asarray(a)[:idx.size])  # gathered
+            boxes, has_nan = jax.tree.map(trim, boxes), has_nan[:idx.size]
+        parts.append(boxes)
+        nan_rows.append(np.asarray(has_nan))
     nan_rows = np.concatenate(nan_rows)
     if nan_rows.any():
         cell = int(rows[np.flatnonzero(nan_rows)[0]])
         lo, hi = (np.asarray(b) for b in grid.cell_bounds(cell))
         raise ValueError(f"the reachable-set bounds of cell {cell} (box {lo.tolist()}..{hi.tolist()}) are NaN: "
                          f"the dynamics are undefined somewhere on that cell or its noise cells")
-    boxes = jax.tree.map(lambda *a: jnp.concatenate(a), *parts)
+    if len(parts) == 1 and mesh is None:
+        boxes = parts[0]
+    else:  # one array on the default device
+        boxes = jax.tree.map(lambda *a: jnp.concatenate(a), *parts)
     return GridClusters(rows=rows, boxes=boxes, prob=prob, prob_rest=prob_rest)
 
 

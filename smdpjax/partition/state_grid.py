@@ -123,10 +123,14 @@ class StateGrid:
         return (self.high - self.low) / self.cells
 
     def cell_bounds(self, index):
-        """Boxes of flat cell indices ``index: (...)``: returns ``(low, high)``, each ``(..., n)``."""
-        multi = jnp.stack(jnp.unravel_index(jnp.asarray(index), tuple(self.cells.tolist())), axis=-1)
+        """Boxes of flat cell indices ``index: (...)``: returns ``(low, high)``, each ``(..., n)``.
+
+        NumPy arrays for concrete (NumPy / Python) indices, JAX arrays for JAX ones (traced
+        included); both evaluate the same IEEE operations, so the boxes are identical."""
+        xp = np if isinstance(index, (np.ndarray, np.integer, int, list, tuple)) else jnp
+        multi = xp.stack(xp.unravel_index(xp.asarray(index), tuple(self.cells.tolist())), axis=-1)
         lo = self.low + multi * self.width
-        hi = jnp.where(multi + 1 == self.cells, self.high, self.low + (multi + 1) * self.width)
+        hi = xp.where(multi + 1 == self.cells, self.high, self.low + (multi + 1) * self.width)
         return lo, hi
 
     def wrap(self, x):

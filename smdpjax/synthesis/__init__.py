@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -28,21 +29,27 @@ def _check(abstraction, horizon, tol, objective):
 def _finish(abstraction, lower, upper, policy_rows, lower_opt, iterations, eval_iterations,
             converged, change, horizon, objective):
     """Widen by the rounding allowance, expand the row policy to states, measure the gap."""
-    rows = abstraction.rows
     allowance = abstraction.rounding_per_backup() * (int(iterations) + int(eval_iterations))
-    nonterminal = jnp.asarray(abstraction.labels) == NONTERMINAL
+    lower, upper, lower_opt, policy, gap = _finish_arrays(jnp.asarray(abstraction.labels), abstraction.rows, lower,
+                                                          upper, lower_opt, policy_rows, allowance)
+    return Solution(lower=lower, upper=upper, policy=policy, lower_optimal=lower_opt,
+                    iterations=int(iterations), evaluation_iterations=int(eval_iterations),
+                    converged=bool(converged), upper_change=float(change), gap=float(gap),
+                    rounding_allowance=float(allowance), horizon=horizon, objective=objective)
+
+
+@jax.jit
+def _finish_arrays(labels, rows, lower, upper, lower_opt, policy_rows, allowance):
+    nonterminal = labels == NONTERMINAL
     widen = lambda v, sign: jnp.where(nonterminal, jnp.clip(v + sign * allowance, 0.0, 1.0), v)
-    n_states = abstraction.num_states
+    n_states = labels.shape[0]
     if policy_rows.ndim == 1:
         policy = jnp.zeros(n_states, jnp.int32).at[rows].set(policy_rows)
     else:
         policy = jnp.zeros((policy_rows.shape[0], n_states), jnp.int32).at[:, rows].set(policy_rows)
     lower, upper = widen(lower, -1), widen(upper, +1)
-    gap = float(jnp.max(jnp.where(nonterminal, upper - lower, 0.0)))
-    return Solution(lower=lower, upper=upper, policy=policy, lower_optimal=widen(lower_opt, -1),
-                    iterations=int(iterations), evaluation_iterations=int(eval_iterations),
-                    converged=bool(converged), upper_change=float(change), gap=gap,
-                    rounding_allowance=float(allowance), horizon=horizon, objective=objective)
+    gap = jnp.max(jnp.where(nonterminal, upper - lower, 0.0))
+    return lower, upper, widen(lower_opt, -1), policy, gap
 
 
 def synthesize(abstraction, horizon: int | None = None, tol: float = 1e-6, *, objective: str = "reach_avoid",
