@@ -1,8 +1,17 @@
 import os
+import tempfile
 
 # Test workers share the machine (pytest-xdist): on a GPU, do not let each one reserve most of
 # its memory up front.
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+
+# One persistent compilation cache for the test session's processes: the xdist workers, and the
+# notebooks, Table 1 rows and multi-device runs that the tests start as subprocesses (which
+# inherit the environment), compile many of the same programs. Keyed by program, jax version and
+# devices, so a stale entry is never used; compiled programs only, it changes no result.
+os.environ.setdefault("JAX_COMPILATION_CACHE_DIR",
+                      os.path.join(tempfile.gettempdir(), f"smdpjax-tests-jax-cache-{os.getuid()}"))
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.5")
 
 import jax  # noqa: E402
 import pytest  # noqa: E402

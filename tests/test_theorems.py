@@ -12,6 +12,15 @@ from smdpjax.abstraction import build, compute_grid_clusters
 KINDS = ("imdp", "2imdp", "smdp")
 
 
+def parametric_dynamics(x, u, w):
+    """A nonlinear 2-D system whose coefficients ride along in the input vector
+    ``u = (u_0, u_1, a, b, gain, bend, noise_gain)`` (points to the interval arithmetic), so that
+    every drawn system shares one compiled reachable-set computation per grid shape."""
+    a, b, gain, bend, noise_gain = u[2], u[3], u[4], u[5], u[6]
+    return jnp.array([a * x[0] + b * (x[1] - 0.5) + gain * u[0] + bend * jnp.sin(3 * x[1]) + noise_gain * w[0],
+                      a * x[1] + gain * u[1] + bend * x[0] * x[1] + noise_gain * w[1]])
+
+
 @st.composite
 def random_problem(draw):
     """A random nonlinear 2-D system, grid, specification and noise partition."""
@@ -24,11 +33,8 @@ def random_problem(draw):
     cells = draw(st.sampled_from([6, 8]))
     noise_cells = 3
 
-    def dynamics(x, u, w):
-        return jnp.array([a * x[0] + b * (x[1] - 0.5) + gain * u[0] + bend * jnp.sin(3 * x[1]) + noise_gain * w[0],
-                          a * x[1] + gain * u[1] + bend * x[0] * x[1] + noise_gain * w[1]])
-
-    actions = np.array([[1.0, 0.0], [0.0, 1.0], [0.7, 0.7]])
+    inputs = np.array([[1.0, 0.0], [0.0, 1.0], [0.7, 0.7]])
+    actions = np.concatenate([inputs, np.tile([a, b, gain, bend, noise_gain], (3, 1))], axis=1)
     if gaussian:
         noise, ngrid = sj.Gaussian([0.0, 0.0], [1.0, 1.0]), sj.NoiseGrid.ball([0.0, 0.0], 2.0, noise_cells)
     else:
@@ -36,7 +42,7 @@ def random_problem(draw):
     w = 1.0 / cells
     grid = sj.StateGrid([0, 0], [1, 1], cells, reach=[([1 - 2 * w, 1 - 2 * w], [1, 1])],
                         avoid=[([0.5 - w / 2, 0.2], [0.5 + w / 2, 0.5])])
-    return sj.System(dynamics, actions=actions, noise=noise), grid, ngrid
+    return sj.System(parametric_dynamics, actions=actions, noise=noise), grid, ngrid
 
 
 def assert_nested_under(policy, abstractions, pairs, tol, slack):

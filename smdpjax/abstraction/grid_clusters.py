@@ -126,8 +126,19 @@ def compute_grid_clusters(system: System, grid: StateGrid, noise_grid: NoiseGrid
     return GridClusters(rows=rows, boxes=boxes, prob=prob, prob_rest=prob_rest)
 
 
-@functools.lru_cache(maxsize=32)
 def _chunk_fn(dynamics, grid: StateGrid, method: str):
+    """The compiled chunk computation, shared by every grid of the same geometry (a new
+    ``StateGrid`` object with the same box, cells and periodicity does not recompile)."""
+    geometry = (tuple(grid.low.tolist()), tuple(grid.high.tolist()), tuple(int(c) for c in grid.cells),
+                tuple(bool(p) for p in grid.periodic))
+    return _chunk_fn_for(dynamics, geometry, method)
+
+
+@functools.lru_cache(maxsize=32)
+def _chunk_fn_for(dynamics, geometry: tuple, method: str):
+    low, high, cells, periodic = geometry
+    grid = StateGrid(np.array(low), np.array(high), np.array(cells), periodic=np.array(periodic))
+
     @jax.jit
     def run(x_lo, x_hi, actions, w_lo, w_hi):
         lo, hi = reachable_boxes(dynamics, x_lo, x_hi, actions, w_lo, w_hi, method)
