@@ -149,22 +149,33 @@ def certified_start(abstraction, candidate, v0, slack, margin):
 
 
 # Margins tried below the guess, in units of the backup's rounding bound, while they stay under
-# ``tol`` (the first is always tried): rows whose value has stopped changing gain under a backup
-# only through the margin, scaled by their probability of reaching a terminal state.
+# ``tol`` (the first is always tried), and then ``tol`` itself: rows whose value has stopped
+# changing gain under a backup only through the margin, scaled by their probability of reaching
+# a terminal state, so the largest margin is often the only one that passes.
 WARM_MARGINS = tuple(10.0 ** k for k in range(2, 13))
+
+
+def warm_margins(slack, tol):
+    """The margins ``warm_start`` tries, in order: ``slack * WARM_MARGINS`` up to ``tol``, then
+    ``tol`` (all of them capped at ``tol`` except the first); later entries that do not grow are
+    skipped."""
+    ladder = slack * jnp.asarray(WARM_MARGINS + (jnp.inf,), jnp.result_type(slack, tol))
+    return jnp.concatenate([ladder[:1], jnp.minimum(ladder[1:], tol)])
 
 
 @jax.jit
 def warm_start(abstraction, guess, v0, slack, tol):
-    """``certified_start`` with the first margin of ``WARM_MARGINS`` (times ``slack``) that passes.
+    """``certified_start`` with the first margin of ``warm_margins(slack, tol)`` that passes.
 
     Returns ``(start, certified, backups spent)``; ``start`` is ``v0`` when none passes.
     """
-    margins = slack * jnp.asarray(WARM_MARGINS, v0.dtype)
+    margins = warm_margins(slack, tol).astype(v0.dtype)
+    last = margins.shape[0] - 1
 
     def cond(state):
         i, _, done = state
-        return ~done & (i < margins.shape[0]) & ((i == 0) | (margins[jnp.minimum(i, margins.shape[0] - 1)] <= tol))
+        grows = margins[jnp.minimum(i, last)] > margins[jnp.maximum(i - 1, 0)]
+        return ~done & (i <= last) & ((i == 0) | grows)
 
     def body(state):
         i, _, _ = state

@@ -7,7 +7,7 @@ import pytest
 import smdpjax as sj
 from smdpjax.partition import AVOID, NONTERMINAL, REACH
 from smdpjax.synthesis import _pessimistic, _warm_start
-from smdpjax.synthesis.value_iteration import WARM_MARGINS
+from smdpjax.synthesis.value_iteration import WARM_MARGINS, warm_margins
 
 
 def idle_or_gamble():
@@ -40,6 +40,27 @@ def test_a_guess_above_the_value_is_refused_and_one_below_is_taken():
     assert start is not None and 0.4 - 1e-7 < float(start[0]) < 0.4
     lower, _, _ = _pessimistic(imdp, v0, gamble, 1e-12, 1000, jnp.array([0.4, 1.0, 0.0]))
     assert 0.5 - 1e-12 <= float(lower[0]) <= 0.5
+
+
+def test_the_tolerance_itself_is_the_last_margin_tried():
+    """Cell 0 stays put with probability p and reaches the goal otherwise (value 1). From
+    1 - m a backup gains m (1 - p): with 1 - p = 2 slack / tol only the margin tol gains more than
+    the rounding bound slack, and tol lies strictly between two rungs of the ladder."""
+    probe = idle_or_gamble()
+    slack = 2.0 * float(probe.rounding_per_backup())
+    tol = 5e4 * slack  # between slack * 1e4 and slack * 1e5
+    stay = 1.0 - 2.0 * slack / tol
+    imdp = sj.IMDP(successors=jnp.array([[[0, 1]]], jnp.int16), lower=jnp.array([[[stay, 1.0 - stay]]]),
+                   upper=jnp.array([[[stay, 1.0 - stay]]]), upper_rest=jnp.asarray(0.0),
+                   rows=jnp.array([0], jnp.int32), labels=jnp.array([NONTERMINAL, REACH, AVOID], jnp.int8))
+    assert float(imdp.rounding_per_backup()) == float(probe.rounding_per_backup())
+    margins = np.asarray(warm_margins(slack, tol))
+    tried = margins[:np.flatnonzero(np.diff(margins) <= 0)[0] + 1]
+    np.testing.assert_allclose(tried, [slack * 1e2, slack * 1e3, slack * 1e4, tol], rtol=1e-12)
+    stays = jnp.array([0], jnp.int32)
+    start, tries = _warm_start(imdp, imdp.restrict(stays), imdp.initial_values(), jnp.array([1.0, 1.0, 0.0]), tol)
+    assert start is not None and tries == 4
+    assert float(start[0]) == 1.0 - tol
 
 
 def test_certificate_rejects_every_start_above_the_least_fixed_point():
@@ -85,7 +106,7 @@ def test_synthesis_uses_the_warm_start_and_stays_below_the_cold_value(kind):
     # Where no margin up to tol certifies the guess (here the IMDP, whose minimizing
     # adversary keeps nearly all mass among states whose values no longer move), evaluation falls
     # back to the cold start, having spent only the checks.
-    assert warm.evaluation_iterations <= cold.evaluation_iterations + len(WARM_MARGINS)
+    assert warm.evaluation_iterations <= cold.evaluation_iterations + len(WARM_MARGINS) + 1
     if kind == "smdp":
         assert warm.evaluation_iterations < cold.evaluation_iterations / 2
     assert np.all(np.asarray(warm.lower_optimal) >= lo_w)
