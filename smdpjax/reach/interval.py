@@ -258,7 +258,9 @@ def _mul0(x, y):
     p = x * y
     if not _inexact(p):
         return p
-    return jnp.where(jnp.isnan(p) & ~jnp.isnan(x) & ~jnp.isnan(y), jnp.zeros_like(p), p)
+    # A NaN product of non-NaN factors is 0 * inf; then x + y is +-inf, not NaN (x + y is NaN for
+    # inf + -inf only, whose product -inf is no NaN): one test instead of one per factor.
+    return jnp.where(jnp.isnan(p) & ~jnp.isnan(x + y), jnp.zeros_like(p), p)
 
 
 def _ends(iv):

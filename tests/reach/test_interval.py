@@ -309,6 +309,17 @@ def test_outward_step_covers_rounding_and_widening_exactly(rel, abs_):
             assert d == -np.inf
 
 
+def test_products_treat_zero_times_infinity_as_zero_and_keep_nan():
+    from smdpjax.reach.interval import _mul0
+
+    special = np.array([0.0, -0.0, 1.5, -2.0, np.inf, -np.inf, np.nan])
+    x, y = np.meshgrid(special, special)
+    got = np.asarray(_mul0(jnp.asarray(x), jnp.asarray(y)))
+    with np.errstate(invalid="ignore"):
+        want = np.where(np.isnan(x * y) & ~np.isnan(x) & ~np.isnan(y), 0.0, x * y)
+    np.testing.assert_array_equal(got, want)
+
+
 def test_outward_step_of_infinities_and_nan():
     from smdpjax.reach.interval import _nudge
 
