@@ -85,12 +85,13 @@ def synthesize(abstraction, horizon: int | None = None, tol: float = 1e-6, *, ob
     lower bounds, and far fewer expensive backups are needed.
     """
     v0 = _check(abstraction, horizon, tol, objective)
+    if policy_sweeps is not None and (int(policy_sweeps) != policy_sweeps or policy_sweeps < 0):
+        raise ValueError(f"policy_sweeps must be None or a non-negative integer, got {policy_sweeps}")
     if horizon is not None:
         lo, up, policy = value_iteration.finite_horizon(abstraction, v0, int(horizon))
         return _finish(abstraction, lo, up, policy, lo, horizon, 0, True, 0.0, int(horizon), objective)
-    if policy_sweeps is not None and (int(policy_sweeps) != policy_sweeps or policy_sweeps < 0):
-        raise ValueError(f"policy_sweeps must be None or a non-negative integer, got {policy_sweeps}")
-    lo_opt, policy, k, converged = _optimize(abstraction, v0, tol, max_iterations, policy_sweeps)
+    sweeps = None if policy_sweeps is None else int(policy_sweeps)
+    lo_opt, policy, k, converged = _optimize(abstraction, v0, tol, max_iterations, sweeps)
     lo, up, k_eval, (converged_eval, change) = _evaluate_both(abstraction, v0, policy, tol, max_iterations,
                                                               guess=lo_opt)
     lo_opt = jnp.maximum(lo_opt, lo)  # both are lower bounds of the optimum (the strategy's value is one)
@@ -138,9 +139,8 @@ def _optimize(abstraction, v0, tol, max_iterations, policy_sweeps=None):
     start, policy0, k0 = v0, None, 0
     if relaxation is not None:
         start, policy0, k0, _ = _optimize(relaxation, v0, tol, max_iterations, policy_sweeps)
-    sweeps = None if policy_sweeps is None else int(policy_sweeps)
     lo, policy, k, delta = value_iteration.optimize_lower(abstraction, start, tol, max_iterations, policy0,
-                                                          policy_sweeps=sweeps)
+                                                          policy_sweeps=policy_sweeps)
     return lo, policy, int(k) + int(k0), bool(delta <= tol)
 
 
