@@ -7,6 +7,8 @@ avoid cells and the sink absorbing with value 0 (the reach-avoid reduction of th
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -37,12 +39,9 @@ class AbstractionMixin:
 
     def initial_values(self, objective: str = "reach_avoid"):
         """``(N+1,)`` p^0: the indicator of S_reach (reach-avoid) or of the safe cells (safety)."""
-        labels = jnp.asarray(self.labels)
-        if objective == "reach_avoid":
-            return (labels == REACH).astype(jnp.float64)
-        if objective == "safety":
-            return (labels != AVOID).astype(jnp.float64)
-        raise ValueError(f"unknown objective {objective!r}; expected 'reach_avoid' or 'safety'")
+        if objective not in ("reach_avoid", "safety"):
+            raise ValueError(f"unknown objective {objective!r}; expected 'reach_avoid' or 'safety'")
+        return _initial_values(jnp.asarray(self.labels), objective)
 
     @property
     def nbytes(self) -> int:
@@ -74,3 +73,10 @@ def check_adversary(adversary: str) -> bool:
     if adversary not in ("min", "max"):
         raise ValueError(f"adversary must be 'min' or 'max', got {adversary!r}")
     return adversary == "min"
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _initial_values(labels, objective: str):  # one dispatch instead of three (small problems)
+    if objective == "reach_avoid":
+        return (labels == REACH).astype(jnp.float64)
+    return (labels != AVOID).astype(jnp.float64)
