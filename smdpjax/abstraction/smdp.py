@@ -22,6 +22,7 @@ The remainder noise cell (unbounded W) has the whole state space as its cluster,
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -98,9 +99,10 @@ class BoxClusters:
     @classmethod
     def from_index_boxes(cls, grid: StateGrid, boxes: IndexBoxes) -> "BoxClusters":
         """Compact copy of ``boxes`` (leading shape ``(R, A, C_b)``) on ``grid`` (needs concrete boxes)."""
-        dtype = _small_int(int(np.max(grid.cells)))
-        return cls(start=jnp.asarray(boxes.start, dtype), length=jnp.asarray(boxes.length, dtype),
-                   sink=jnp.asarray(boxes.sink, bool), spec=RangeSpec.for_grid(grid, max_lengths(boxes)))
+        dtype = np.dtype(_small_int(int(np.max(grid.cells))))
+        start, length, sink, longest = _compact(boxes.start, boxes.length, boxes.sink, dtype)
+        lengths = tuple(max(int(v), 1) for v in np.asarray(longest))  # as ``max_lengths``
+        return cls(start=start, length=length, sink=sink, spec=RangeSpec.for_grid(grid, lengths))
 
     @property
     def shape(self) -> tuple:
@@ -135,6 +137,12 @@ class BoxClusters:
     def describe(self) -> str:
         lengths = "x".join(map(str, self.spec.max_lengths))
         return f"encoding=boxes, max box={lengths} cells"
+
+
+@functools.partial(jax.jit, static_argnums=3)
+def _compact(start, length, sink, dtype):  # one dispatch: the build of small SMDPs is all overhead
+    longest = jnp.max(length.reshape(-1, length.shape[-1]), axis=0)
+    return start.astype(dtype), length.astype(dtype), sink.astype(bool), longest
 
 
 def _small_int(max_value: int):
