@@ -41,7 +41,7 @@ class AbstractionMixin:
         """``(N+1,)`` p^0: the indicator of S_reach (reach-avoid) or of the safe cells (safety)."""
         if objective not in ("reach_avoid", "safety"):
             raise ValueError(f"unknown objective {objective!r}; expected 'reach_avoid' or 'safety'")
-        return _initial_values(jnp.asarray(self.labels), objective)
+        return _initial_values(self.labels, objective)
 
     @property
     def nbytes(self) -> int:

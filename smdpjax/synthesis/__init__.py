@@ -30,7 +30,7 @@ def _finish(abstraction, lower, upper, policy_rows, lower_opt, iterations, eval_
             converged, change, horizon, objective):
     """Widen by the rounding allowance, expand the row policy to states, measure the gap."""
     allowance = abstraction.rounding_per_backup() * (int(iterations) + int(eval_iterations))
-    lower, upper, lower_opt, policy, gap = _finish_arrays(jnp.asarray(abstraction.labels), abstraction.rows, lower,
+    lower, upper, lower_opt, policy, gap = _finish_arrays(abstraction.labels, abstraction.rows, lower,
                                                           upper, lower_opt, policy_rows, allowance)
     return Solution(lower=lower, upper=upper, policy=policy, lower_optimal=lower_opt,
                     iterations=int(iterations), evaluation_iterations=int(eval_iterations),
@@ -125,7 +125,7 @@ def verify(abstraction, policy=None, horizon: int | None = None, tol: float = 1e
         raise ValueError(f"a time-dependent policy of shape {policy.shape} needs horizon={policy.shape[0]}")
     if np.any(policy < 0) or np.any(policy >= abstraction.num_actions):
         raise ValueError(f"policy entries must lie in [0, {abstraction.num_actions})")
-    rows_policy = jnp.asarray(policy[..., np.asarray(abstraction.rows)], jnp.int32)
+    rows_policy = policy[..., np.asarray(abstraction.rows)].astype(np.int32)  # jit moves it to the device
     if horizon is not None:
         lo, up, pol = value_iteration.finite_horizon(abstraction, v0, int(horizon), rows_policy)
         return _finish(abstraction, lo, up, pol, lo, horizon, 0, True, 0.0, int(horizon), objective)
