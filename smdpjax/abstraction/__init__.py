@@ -6,6 +6,10 @@
 
 from __future__ import annotations
 
+import warnings
+
+import jax.numpy as jnp
+
 from ..partition import NoiseGrid, StateGrid
 from ..system import System
 from .base import AbstractionMixin
@@ -26,7 +30,14 @@ def build(kind: str, grid: StateGrid, clusters: GridClusters, **options):
         if kind in KINDS:
             raise NotImplementedError(f"abstraction kind {kind!r} is not available yet")
         raise ValueError(f"unknown abstraction kind {kind!r}; expected one of {KINDS}")
-    return _BUILDERS[kind].from_clusters(grid, clusters, **options)
+    abstraction = _BUILDERS[kind].from_clusters(grid, clusters, **options)
+    if kind == "imdp" and not bool(jnp.any(abstraction.lower > 0)):
+        warnings.warn("IMDP: every lower transition bound is 0 (no reachable set of any cell, action and noise "
+                      "cell lies inside one state), so the adversary may move all mass anywhere the upper bounds "
+                      "allow and p_low is 0 except where they force mass into the goal. Finer noise cells or "
+                      "coarser state cells help; the 2I-MDP, MI-MDP and SMDP keep more of the reachable sets' "
+                      "information.", stacklevel=2)
+    return abstraction
 
 
 def abstract(system: System, state_grid: StateGrid, noise_grid: NoiseGrid, kind: str = "smdp", *,
@@ -50,7 +61,9 @@ def abstract(system: System, state_grid: StateGrid, noise_grid: NoiseGrid, kind:
 
     Returns:
         An abstraction PyTree (``IMDP``, ``TwoLayerIMDP``, ``MIMDP``, ``SMDP``), ready for
-        ``smdpjax.synthesize``.
+        ``smdpjax.synthesize``. An IMDP none of whose lower transition bounds is positive (no
+        reachable box inside one cell: the partitions are too coarse for Lemma 1) comes with a
+        ``UserWarning``, since its p_low is then 0 almost everywhere.
     """
     if kind not in KINDS:
         raise ValueError(f"unknown abstraction kind {kind!r}; expected one of {KINDS}")

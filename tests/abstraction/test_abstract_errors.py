@@ -90,3 +90,17 @@ def test_argument_types():
         sj.abstract(system(), NOISE, NOISE, "smdp")
     with pytest.raises(TypeError, match="System"):
         sj.abstract(ok, GRID, NOISE, "smdp")
+
+
+def test_imdp_warns_when_every_lower_bound_is_zero():
+    # noise of width 0.2 per cell on cells of width 0.2: no reachable box fits inside one cell
+    wide = system(lambda x, u, w: x + 0.1 * u + 0.2 * w)
+    with pytest.warns(UserWarning, match="every lower transition bound is 0"):
+        imdp = sj.abstract(wide, GRID, NOISE, "imdp")
+    assert float(imdp.lower.max()) == 0.0
+    # the same grid with narrow noise has lower bounds, and says nothing
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        narrow = sj.abstract(system(lambda x, u, w: 0.5 * x + 0.21 + 0.001 * w), GRID, NOISE, "imdp")
+    assert float(narrow.lower.max()) > 0.0
