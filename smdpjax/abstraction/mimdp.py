@@ -308,7 +308,7 @@ def interval_min_rows(w, w_listed, succ, lower, upper, upper_rest):
             return jnp.where(enough, lo_i, mid + 1), jnp.where(enough, mid, hi_i)
 
         zeros = jnp.zeros(base.shape, jnp.int32)
-        steps = int(np.ceil(np.log2(size + 1))) + 1
+        steps = int(size).bit_length()  # each step at least halves hi - lo (size at first)
         return jax.lax.fori_loop(0, steps, step, (zeros, zeros + size))[1]
 
     j_star = smallest_enough(lambda j: w_sorted[j], n)

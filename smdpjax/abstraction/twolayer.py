@@ -228,7 +228,7 @@ def two_layer_min(w, blocks, block_lower, block_upper, lower, upper, cells_of, u
         enough = mass_and_cost(mid)[0] >= 1.0
         return jnp.where(enough, lo_k, mid + 1), jnp.where(enough, mid, hi_k)
 
-    steps = int(np.ceil(np.log2(n_states + 2))) + 1
+    steps = int(n_states).bit_length()  # each step at least halves hi - lo (n_states at first)
     zeros = jnp.zeros(blocks.shape[:-1], jnp.int32)
     _, k_star = jax.lax.fori_loop(0, steps, bisect, (zeros, zeros + n_states))
     j = jnp.maximum(k_star - 1, 0)
