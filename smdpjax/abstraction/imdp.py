@@ -144,9 +144,9 @@ def interval_min(w, succ, lower, upper, upper_rest):
 
     # Few successors (the sparse rows of bounded noise): successor-major (K, ...) columns,
     # combined by explicit elementwise sums, which XLA on the CPU fuses into one vectorized
-    # loop; a reduction over a short K axis ran 1.5-3x slower. Many successors: the reduction
-    # over the last axis (explicit sums of hundreds of columns, or a reduction over a leading
-    # axis, were up to 2.5x slower there). Measured with benchmarks/storm_peer.py. The order of
+    # loop; a reduction over a short K axis ran 1.5-1.7x slower. Many successors: the reduction
+    # over the last axis (explicit sums of hundreds of columns ran 1.5-2.9x slower there, a
+    # reduction over a leading axis 2.5x). Measured with benchmarks/cpu_layouts.py. The order of
     # the sums does not matter for soundness (the allowance counts summands, see
     # ``summands_per_backup``).
     width = succ.shape[-1]
