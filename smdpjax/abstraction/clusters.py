@@ -96,8 +96,12 @@ def index_dtype(num_states: int):
 
 def max_lengths(boxes: IndexBoxes) -> tuple:
     """Largest length per dimension over all boxes (a static shape for ``cluster_members``)."""
-    lengths = np.asarray(jnp.max(boxes.length.reshape(-1, boxes.length.shape[-1]), axis=0))
-    return tuple(max(int(v), 1) for v in lengths)
+    return lengths_of(jnp.max(boxes.length.reshape(-1, boxes.length.shape[-1]), axis=0))
+
+
+def lengths_of(longest) -> tuple:
+    """``max_lengths`` from the per-dimension maximum ``longest (n,)`` (at least 1 each)."""
+    return tuple(max(int(v), 1) for v in np.asarray(longest))
 
 
 def cluster_members(grid: StateGrid, boxes: IndexBoxes, lengths: tuple):

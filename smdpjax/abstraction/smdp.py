@@ -31,7 +31,7 @@ import numpy as np
 from .._pytree import pytree_dataclass, static_field
 from ..partition import StateGrid
 from .base import AbstractionMixin, check_adversary
-from .clusters import IndexBoxes, cluster_members, max_lengths
+from .clusters import IndexBoxes, cluster_members, lengths_of, max_lengths
 from .grid_clusters import GridClusters
 from .imdp import row_chunks
 from .range_min import RangeSpec, build_table, query_table
@@ -101,8 +101,7 @@ class BoxClusters:
         """Compact copy of ``boxes`` (leading shape ``(R, A, C_b)``) on ``grid`` (needs concrete boxes)."""
         dtype = np.dtype(_small_int(int(np.max(grid.cells))))
         start, length, sink, longest = _compact(boxes.start, boxes.length, boxes.sink, dtype)
-        lengths = tuple(max(int(v), 1) for v in np.asarray(longest))  # as ``max_lengths``
-        return cls(start=start, length=length, sink=sink, spec=RangeSpec.for_grid(grid, lengths))
+        return cls(start=start, length=length, sink=sink, spec=RangeSpec.for_grid(grid, lengths_of(longest)))
 
     @property
     def shape(self) -> tuple:
