@@ -173,6 +173,37 @@ def test_interval_min_rows_matches_lp(rest):
         assert got[i] == pytest.approx(res.fun, abs=1e-9)
 
 
+@pytest.mark.parametrize("bisections, walk", [(2, 0), (0, 1), (20, 4)])
+def test_interval_min_rows_threshold_search_is_sound_when_cut_short(monkeypatch, bisections, walk):
+    """Listed costs packed into a tiny range (near-ties of the shifted costs): a threshold search
+    cut short must still return a lower bound of the LP (weak duality at any tau), and the
+    default search must be within its documented slack."""
+    from smdpjax.abstraction import mimdp as module
+
+    monkeypatch.setattr(module, "_REAL_BISECTIONS", bisections)
+    monkeypatch.setattr(module, "_WALK_STEPS", walk)
+    rng = np.random.default_rng(5)
+    n, k, rows, rest = 30, 8, 80, 0.01
+    succ = np.stack([rng.choice(n, k, replace=False) for _ in range(rows)])
+    lower = rng.uniform(0, 0.05, (rows, k))
+    upper = lower + rng.uniform(0.05, 0.2, (rows, k))
+    w = rng.uniform(0, 1, n)
+    w_listed = 0.4 + rng.integers(0, 6, (rows, k)) * 1e-6 + rng.uniform(0, 1e-9, (rows, k))  # 6 near-tied groups
+    got = np.asarray(interval_min_rows(jnp.asarray(w), jnp.asarray(w_listed), jnp.asarray(succ),
+                                       jnp.asarray(lower), jnp.asarray(upper), rest))
+    below = 0
+    for i in range(rows):
+        c, lo, hi = w.copy(), np.zeros(n), np.full(n, rest)
+        c[succ[i]], lo[succ[i]], hi[succ[i]] = w_listed[i], lower[i], upper[i]
+        res = linprog(c, A_eq=np.ones((1, n)), b_eq=[1.0], bounds=list(zip(lo, hi)), method="highs")
+        assert got[i] <= res.fun + 1e-12
+        below += got[i] < res.fun - 1e-13
+        if walk == 4:  # exact, or off by at most (bracket width 2^-20 of a gap of w) x (mass)
+            assert got[i] == pytest.approx(res.fun, abs=1e-8)
+    if walk < 4:
+        assert below > 0  # the cut-short search really took the fallback
+
+
 @pytest.mark.parametrize("case", ["small", "small_highs"])
 def test_q_values_equal_reference_lp(case, request):
     grid, clusters, mimdp, _ = request.getfixturevalue(case)
