@@ -53,7 +53,7 @@ def _finish_arrays(labels, rows, lower, upper, lower_opt, policy_rows, allowance
 
 
 def synthesize(abstraction, horizon: int | None = None, tol: float = 1e-6, *, objective: str = "reach_avoid",
-               max_iterations: int = 100_000, policy_sweeps: int | None = None) -> Solution:
+               max_iterations: int = 100_000, policy_sweeps: int | None = None, upper: bool = True) -> Solution:
     """Robust dynamic programming: p_low with an optimal strategy, then p_up under it.
 
     Args:
@@ -72,6 +72,9 @@ def synthesize(abstraction, horizon: int | None = None, tol: float = 1e-6, *, ob
             ``value_iteration.optimize_lower``); ``None``: the number of actions; ``0``: plain
             value iteration. Sound for any value; only the speed and where the optimization
             stops within ``tol`` change.
+        upper: ``False`` skips the optimistic bound (about half the work of a finite horizon)
+            when only the guarantee and its strategy are needed; ``Solution.upper`` is then the
+            trivial bound (1 on every state that is not avoided) and ``gap`` reports its width.
 
     Returns:
         ``Solution``. ``lower`` is the certified value of the returned strategy, evaluated
@@ -88,12 +91,16 @@ def synthesize(abstraction, horizon: int | None = None, tol: float = 1e-6, *, ob
     if policy_sweeps is not None and (int(policy_sweeps) != policy_sweeps or policy_sweeps < 0):
         raise ValueError(f"policy_sweeps must be None or a non-negative integer, got {policy_sweeps}")
     if horizon is not None:
-        lo, up, policy = value_iteration.finite_horizon(abstraction, v0, int(horizon))
+        lo, up, policy = value_iteration.finite_horizon(abstraction, v0, int(horizon), with_upper=bool(upper))
         return _finish(abstraction, lo, up, policy, lo, horizon, 0, True, 0.0, int(horizon), objective)
     sweeps = None if policy_sweeps is None else int(policy_sweeps)
     lo_opt, policy, k, converged = _optimize(abstraction, v0, tol, max_iterations, sweeps)
-    lo, up, k_eval, (converged_eval, change) = _evaluate_both(abstraction, v0, policy, tol, max_iterations,
-                                                              guess=lo_opt)
+    if upper:
+        lo, up, k_eval, (converged_eval, change) = _evaluate_both(abstraction, v0, policy, tol, max_iterations,
+                                                                  guess=lo_opt)
+    else:
+        lo, k_eval, converged_eval = _pessimistic(abstraction, v0, policy, tol, max_iterations, lo_opt)
+        up, change = value_iteration.top_values(abstraction), 0.0
     lo_opt = jnp.maximum(lo_opt, lo)  # both are lower bounds of the optimum (the strategy's value is one)
     return _finish(abstraction, lo, up, policy, lo_opt, k, k_eval, converged and converged_eval, change, None,
                    objective)

@@ -186,13 +186,15 @@ def warm_start(abstraction, guess, v0, slack, tol):
     return start, certified, tries
 
 
-@functools.partial(jax.jit, static_argnames=("horizon",))
-def finite_horizon(abstraction, v0, horizon: int, policy=None):
+@functools.partial(jax.jit, static_argnames=("horizon", "with_upper"))
+def finite_horizon(abstraction, v0, horizon: int, policy=None, with_upper: bool = True):
     """T = ``horizon`` backups. ``policy``: ``None`` (optimized, time-dependent), ``(R,)``
     (stationary) or ``(T, R)`` (``policy[t]`` is the action at time t).
 
     Returns ``(lower, upper, policy (T, R))`` where ``policy[t]`` is the action at time t
-    (``t = 0`` is the first step, i.e. the last backup).
+    (``t = 0`` is the first step, i.e. the last backup). ``with_upper=False`` (optimized
+    strategy only) skips the maximizing adversary's backups and returns ``top_values`` as
+    ``upper``, the trivial bound.
     """
     rows = abstraction.rows
     if policy is None:
@@ -213,6 +215,14 @@ def finite_horizon(abstraction, v0, horizon: int, policy=None):
 
         (lo, up), actions = jax.lax.scan(step, (v0, v0), steps, length=horizon)
         return lo, up, actions[::-1]
+
+    if not with_upper:
+        def lower_step(lo, _):
+            q = abstraction.q_values(lo, "min")
+            return _set_rows(lo, rows, q.max(axis=1)), jnp.argmax(q, axis=1).astype(jnp.int32)
+
+        lo, actions = jax.lax.scan(lower_step, v0, None, length=horizon)
+        return lo, top_values(abstraction), actions[::-1]
 
     # Optimized strategy: the upper backup of time step t needs the action chosen by the lower
     # backup of step t, so it runs one iteration later, beside the next lower backup; the two

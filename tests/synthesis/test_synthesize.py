@@ -126,3 +126,19 @@ def test_early_stopping_only_loosens_the_bounds(small_problem, kind):
     fixed = abstraction.restrict(jnp.asarray(west[np.asarray(abstraction.rows)], jnp.int32))
     from_below, _, _ = value_iteration.evaluate(fixed, tight.lower, "max", 3e-2, 100_000)
     assert np.any(np.asarray(from_below) < np.asarray(tight.upper) - 1e-6)
+
+
+@pytest.mark.parametrize("horizon", [None, 7])
+@pytest.mark.parametrize("kind", ["imdp", "smdp"])
+def test_lower_only_matches_full_synthesis(small_problem, kind, horizon):
+    """``upper=False`` gives the same guarantee and strategy and only the trivial upper bound."""
+    system, grid, noise = small_problem
+    abstraction = sj.abstract(system, grid, noise, kind)
+    full = sj.synthesize(abstraction, horizon=horizon, tol=1e-9)
+    lean = sj.synthesize(abstraction, horizon=horizon, tol=1e-9, upper=False)
+    np.testing.assert_array_equal(np.asarray(lean.policy), np.asarray(full.policy))
+    np.testing.assert_allclose(np.asarray(lean.lower), np.asarray(full.lower), rtol=0, atol=1e-12)
+    labels = grid.state_labels
+    up = np.asarray(lean.upper)
+    assert np.all(up[labels != AVOID] == 1) and np.all(up[labels == AVOID] == 0)
+    assert np.all(np.asarray(full.upper) <= up)
