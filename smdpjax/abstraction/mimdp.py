@@ -40,8 +40,9 @@ The last term is an interval problem whose listed successors carry a per-row mod
 by ``interval_min_rows`` through its own dual (a threshold cost), which is a lower bound for any
 threshold and exact at the one it finds except in near-ties it documents. So ``q_values(v,
 "min")`` never exceeds the true minimum over Gamma^MI (up to float rounding, see
-``summands_per_backup``), and equals it when the multipliers are optimal. ``"max"`` applies the same to ``-v`` and negates: a valid *upper* bound
-of the maximum. Both directions are the conservative ones for the robust values.
+``summands_per_backup``), and equals it when the multipliers are optimal. ``"max"`` applies
+the same to ``-v`` and negates: a valid *upper* bound of the maximum. Both directions are the
+conservative ones for the robust values.
 """
 
 from __future__ import annotations
@@ -277,7 +278,7 @@ def interval_min_rows(w, w_listed, succ, lower, upper, upper_rest):
         w: ``(N+1,)`` costs of the unlisted states (a listed state's entry is ignored).
         w_listed: ``(..., K)`` costs of the listed successors.
         succ, lower, upper: ``(..., K)`` listed successors (padding ``>= N+1``), bounds.
-        upper_rest: upper bound of every unlisted state.
+        upper_rest: upper bound of every unlisted state (lower bound 0).
 
     The value is the interval LP's dual function at a threshold cost tau,
 
