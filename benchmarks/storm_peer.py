@@ -7,9 +7,10 @@ IMDP is exported to Storm's DRN format and built in Storm once (timed separately
 compile), then, alternating in one run, ``smdpjax.synthesize(imdp, horizon=K)`` (p_low with its
 strategy and p_up under it) and Storm's ``Pmax=? [ !"avoid" U<=K "reach" ]`` with
 ``uncertainty_resolution_mode=ROBUST`` (p_low only), and ``synthesize(imdp, horizon=K,
-upper=False)``, which computes what Storm's query computes (p_low and its strategy). Reports medians, the transitions of the model
-(entries with a nonzero upper bound, as Storm counts them), transition-updates per second
-(transitions x K / seconds) and the ratio, and checks that both p_low agree within 1e-9.
+upper=False)``, which computes what Storm's query computes (p_low and its strategy). Reports
+medians, the transitions of the model (entries with a nonzero upper bound, as Storm counts them),
+transition-updates per second (transitions x K / seconds) and the ratios, and checks that the
+p_low values agree within 1e-9.
 
     python -m benchmarks.storm_peer [--cells 20,30] [--noise gaussian,uniform] [--horizon 100] [--repeats 3]
 
