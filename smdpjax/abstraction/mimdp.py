@@ -311,9 +311,12 @@ def interval_min_rows(w, w_listed, succ, lower, upper, upper_rest):
         own_below = listed & ((own < t[..., None]) if strict else (own <= t[..., None]))
         return count, own_below, count - jnp.sum(own_below, axis=-1)
 
-    def mass(t, strict=False):  # mass held by the items of cost < t (<= t), each at its upper bound
+    def listed_room(t, strict=False):  # room above the lower bounds of the listed items of cost < t (<= t)
         below = (cost < t[..., None]) if strict else (cost <= t[..., None])
-        return base + jnp.sum(jnp.where(below, cap, 0.0), axis=-1) + upper_rest * unlisted_below(t, strict)[2]
+        return jnp.sum(jnp.where(below, cap, 0.0), axis=-1)
+
+    def mass(t, strict=False):  # mass held by the items of cost < t (<= t), each at its upper bound
+        return base + listed_room(t, strict) + upper_rest * unlisted_below(t, strict)[2]
 
     def smallest_enough(_, bounds):  # over the index into w_sorted
         lo_i, hi_i = bounds
@@ -338,7 +341,7 @@ def interval_min_rows(w, w_listed, succ, lower, upper, upper_rest):
     def narrow(_, bounds):  # keeps mass(<= a) < 1 <= mass(<= b) (when the polytope is feasible)
         a, b = bounds
         mid = a + 0.5 * (b - a)
-        enough = fixed_inside + jnp.sum(jnp.where(cost <= mid[..., None], cap, 0.0), axis=-1) >= 1.0
+        enough = fixed_inside + listed_room(mid) >= 1.0
         return jnp.where(enough, a, mid), jnp.where(enough, mid, b)
 
     a, b = jax.lax.fori_loop(0, _REAL_BISECTIONS, narrow, (lower_end, upper_end))
