@@ -49,6 +49,8 @@ _REDUNDANT_SLACK = 1e-12
 _NEGLIGIBLE_MASS = 1e-6
 # LPs whose cluster data are prepared together (bounds the (LPs x clusters x members) temporaries).
 _LPS_PER_BLOCK = 4096
+# Locks shared by the LPs (LP p uses lock p % stripes): few, so that they cost nothing to keep
+_LP_LOCK_STRIPES = 64
 BACKENDS = ("clarabel", "highs")
 
 
@@ -102,6 +104,10 @@ class ClusterLPs:
         self.max_cached_solvers = int(max_cached_solvers)
         self._local = threading.local()
         self._lock = threading.Lock()
+        # XLA may run host callbacks concurrently (a step's lower and upper backups, a mesh's
+        # shards), so two calls can reach the same LP at once: its HighsLp (whose costs are set
+        # in place) and Clarabel solver are used under a lock
+        self._lp_locks = tuple(threading.Lock() for _ in range(_LP_LOCK_STRIPES))
         self._executor = None
         self.stats = collections.Counter()
         self._build(np.asarray(lower, np.float64), np.asarray(upper, np.float64), np.asarray(slots),
@@ -231,7 +237,7 @@ class ClusterLPs:
         z_rows = np.concatenate([place(i, pc[4]) for i, pc in enumerate(pieces)]).astype(np.int64)
         z_pos = np.concatenate([np.full(pc[5].size, i) for i, pc in enumerate(pieces)]).astype(np.int64)
         z_target = np.concatenate([pc[5] for pc in pieces])
-        return dict(solver=solver, count=len(part), cost_pos=cost_pos, cost_col=cost_col, z_rows=z_rows,
+        return dict(solver=solver, lock=threading.Lock(), count=len(part), cost_pos=cost_pos, cost_col=cost_col, z_rows=z_rows,
                     z_pos=z_pos, z_target=z_target)
 
     def _highs_lp(self, p):
@@ -265,15 +271,16 @@ class ClusterLPs:
 
     def _solve_highs(self, p, direction, cost, out):
         lp = self._cached(("lp", int(p)), lambda: self._highs_lp(p))
-        lp.col_cost_ = cost
         h = self._highs_solver()
-        h.passModel(lp)
         key = ("basis", direction, int(p))
-        basis = self._solvers.get(key)
-        if basis is not None:
-            h.setBasis(basis)
-        h.run()
-        self._solvers[key] = h.getBasis()
+        with self._lp_locks[int(p) % _LP_LOCK_STRIPES]:
+            lp.col_cost_ = cost
+            h.passModel(lp)
+            basis = self._solvers.get(key)
+            if basis is not None:
+                h.setBasis(basis)
+            h.run()
+            self._solvers[key] = h.getBasis()
         dual = np.asarray(h.getSolution().row_dual)[1:]
         cluster = self._lps[p]["cluster"]
         out[2 * cluster] = np.maximum(dual, 0.0)
@@ -394,9 +401,10 @@ class ClusterLPs:
     @staticmethod
     def _solve_clarabel(block, costs, out):
         solver = block["solver"]
-        solver.update(q=costs[block["cost_pos"], block["cost_col"]])
-        sol = solver.solve()
-        z = np.asarray(sol.z)
+        with block["lock"]:  # a cached solver may be reached by two calls at once
+            solver.update(q=costs[block["cost_pos"], block["cost_col"]])
+            sol = solver.solve()
+            z = np.asarray(sol.z)
         out[block["z_pos"], block["z_target"]] = np.maximum(z[block["z_rows"]], 0.0)
         return str(sol.status)
 

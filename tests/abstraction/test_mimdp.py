@@ -401,3 +401,32 @@ def test_lp_blocks_do_not_change_the_lps(small_clusters, monkeypatch):
             np.testing.assert_array_equal(np.asarray(a[key]), np.asarray(b[key]), err_msg=key)
     np.testing.assert_array_equal(whole.num_rows, blocked.num_rows)
     assert whole.nnz == blocked.nnz
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("case", ["small", "small_highs"])
+def test_concurrent_multiplier_calls_are_safe(case, threads, request, monkeypatch):
+    """XLA may run host callbacks concurrently (the lower and upper backups of one step, or the
+    shards of a mesh), so several ``multipliers`` calls on the same LPs overlap. Each must give
+    what it gives alone: no solver shared mid-solve ("Already borrowed" from Clarabel), no cost
+    vector overwritten by another thread before HiGHS reads it."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from smdpjax.abstraction.mimdp import certified_min
+
+    grid, _, mimdp, _ = request.getfixturevalue(case)
+    imdp, lps, ids = mimdp.relaxation, mimdp.lps, np.asarray(mimdp.lp_index)
+    monkeypatch.setattr(lps, "threads", threads)
+    bound = jax.jit(certified_min)
+    rng = np.random.default_rng(11)
+    jobs = [(rng.uniform(0, 1, mimdp.num_states), direction) for direction in (0, 1) for _ in range(4)]
+
+    def value(w, lam):
+        return np.asarray(bound(jnp.asarray(w), imdp.successors, imdp.lower, imdp.upper, imdp.upper_rest,
+                                mimdp.cluster_slots, mimdp.cluster_lower, mimdp.cluster_upper, jnp.asarray(lam)))
+
+    alone = [value(w, lps.multipliers(w, ids, d)) for w, d in jobs]
+    with ThreadPoolExecutor(len(jobs)) as pool:
+        together = list(pool.map(lambda job: lps.multipliers(job[0], ids, job[1]), jobs * 3))
+    for (w, _), expected, lam in zip(jobs * 3, alone * 3, together):
+        np.testing.assert_allclose(value(w, lam), expected, rtol=0, atol=1e-9)
