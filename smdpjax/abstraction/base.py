@@ -37,6 +37,13 @@ class AbstractionMixin:
     def num_rows(self) -> int:
         return int(self.rows.shape[0])
 
+    def greedy_q_values(self, v):
+        """``(R, A)`` what a greedy backup (max over actions) needs: lower bounds of
+        ``q_values(v, "min")`` that equal it on every action that can be a row's best, so the row
+        maximum and its argmax are ``q_values``'s. Here all of ``q_values``; a class that can
+        tell cheaply which actions cannot win overrides it to skip their work (the MI-MDP)."""
+        return self.q_values(v, "min")
+
     def initial_values(self, objective: str = "reach_avoid"):
         """``(N+1,)`` p^0: the indicator of S_reach (reach-avoid) or of the safe cells (safety)."""
         if objective not in ("reach_avoid", "safety"):

@@ -359,13 +359,20 @@ class ClusterLPs:
 
     def multipliers(self, w, ids, direction: int = 0):
         """Nonnegative multipliers ``(*ids.shape, J, 2)`` (lambda+, lambda-) of the surrogate LPs
-        ``ids`` for costs ``w (N+1,)``; 0 for constraint sides not in the LP. ``direction`` (0:
+        ``ids`` for costs ``w (N+1,)``; 0 for constraint sides not in the LP and for negative ids
+        (LPs not asked for, counted in ``stats["skipped"]``). ``direction`` (0:
         minimizing adversary, 1: maximizing) only selects which HiGHS warm start to use."""
         w = np.asarray(w, np.float64)
         shape = np.shape(ids)
         ids = np.ascontiguousarray(np.asarray(ids, np.int64).ravel())
         lam = np.zeros((ids.size, self.num_clusters, 2))
         if self.num_clusters == 0 or ids.size == 0:
+            return lam.reshape(*shape, self.num_clusters, 2)
+        skipped = ids < 0
+        if skipped.any():  # no LP: zero multipliers, which certify the IMDP value
+            with self._lock:
+                self.stats["skipped"] += int(skipped.sum())
+            lam[~skipped] = self.multipliers(w, ids[~skipped], direction)
             return lam.reshape(*shape, self.num_clusters, 2)
         costs = self.cost_table(w, ids)
         flat = lam.reshape(ids.size, -1)

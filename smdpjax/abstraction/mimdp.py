@@ -61,6 +61,7 @@ from .clusters import IndexBoxes, cluster_members, max_lengths
 from .grid_clusters import GridClusters
 from .imdp import IMDP, interval_min, row_chunks
 from .lp import ClusterLPs
+from .smdp import SMDP
 
 _BOUND_ROWS_PER_CHUNK = 64
 _MEMBER_ROWS_PER_CHUNK = 1024
@@ -83,6 +84,10 @@ class MIMDP(AbstractionMixin):
         labels: ``(N + 1,)`` int8 state labels.
         lps: host-side ``ClusterLPs`` (static; compared by identity).
         multiplier_cap: multipliers are clipped to ``[0, multiplier_cap]`` (static).
+        screen: the SMDP of the same clusters (``None``: no screening), whose ambiguity sets
+            lie inside Gamma^MI (Theorem 2): its robust q-values bound this class's from above,
+            which lets a greedy backup skip the LPs of actions that cannot be the best one
+            (``greedy_q_values``).
     """
 
     relaxation: IMDP
@@ -95,11 +100,13 @@ class MIMDP(AbstractionMixin):
     lps: ClusterLPs = static_field()
     multiplier_cap: float = static_field(default=4.0)
     kind: str = static_field(default="mimdp")
+    screen: SMDP | None = None
 
     @classmethod
     def from_clusters(cls, grid, clusters: GridClusters, extra_clusters=None, *, lp_backend: str = "clarabel",
                       block_size: int = 1, max_buckets: int = 16, multiplier_cap: float = 4.0,
-                      threads: int | None = None, solver_settings: dict | None = None) -> "MIMDP":
+                      threads: int | None = None, solver_settings: dict | None = None,
+                      screen_actions: bool = True) -> "MIMDP":
         """MI-MDP with the informed clusters of ``clusters`` (plus ``extra_clusters``).
 
         Args:
@@ -123,6 +130,8 @@ class MIMDP(AbstractionMixin):
                 solves); default ``min(8, os.cpu_count())``.
             solver_settings: solver options to override (Clarabel settings attributes, e.g.
                 ``{"tol_gap_rel": 1e-7}``, or HiGHS option names).
+            screen_actions: keep the SMDP of ``clusters`` (``screen``) so that greedy backups
+                solve LPs only for the actions that can still be the best (with several actions).
         """
         n_cells = grid.num_cells
         sentinel = n_cells + 1
@@ -174,9 +183,10 @@ class MIMDP(AbstractionMixin):
                          grid.num_states, backend=lp_backend, block_size=block_size, max_buckets=max_buckets,
                          settings=solver_settings, threads=threads or min(8, os.cpu_count() or 1))
         lp_index = np.arange(num_rows * num_actions, dtype=np.int32).reshape(num_rows, num_actions)
+        screen = SMDP.from_clusters(grid, clusters) if screen_actions and num_actions > 1 else None
         return cls(relaxation=imdp, cluster_slots=jnp.asarray(slots), cluster_lower=jnp.asarray(clo),
                    cluster_upper=jnp.asarray(cup), lp_index=jnp.asarray(lp_index), rows=imdp.rows,
-                   labels=imdp.labels, lps=lps, multiplier_cap=float(multiplier_cap))
+                   labels=imdp.labels, lps=lps, multiplier_cap=float(multiplier_cap), screen=screen)
 
     # -- interface ----------------------------------------------------------------------------
     @property
@@ -199,7 +209,8 @@ class MIMDP(AbstractionMixin):
         pick = lambda a: jnp.take_along_axis(a, actions.reshape((-1, 1) + (1,) * (a.ndim - 2)), axis=1)
         return dataclasses.replace(self, relaxation=self.relaxation.restrict(actions),
                                    cluster_slots=pick(self.cluster_slots), cluster_lower=pick(self.cluster_lower),
-                                   cluster_upper=pick(self.cluster_upper), lp_index=pick(self.lp_index))
+                                   cluster_upper=pick(self.cluster_upper), lp_index=pick(self.lp_index),
+                                   screen=None)  # one action: nothing to screen
 
     def q_values(self, v, adversary: str = "min", actions=None):
         """Certified inner values (see the module docstring): for ``"min"`` a lower bound of
@@ -218,10 +229,38 @@ class MIMDP(AbstractionMixin):
                                self.multipliers(w, lp, 0 if minimize else 1), self.multiplier_cap)
         return value if minimize else -value
 
+    def greedy_q_values(self, v):
+        """``(R, A)`` lower bounds of the minimizing q-values, as ``q_values(v, "min")`` on every
+        action that can still be a row's best one and the IMDP's value on the others, so that
+        the row maximum (and its argmax) equals ``q_values``'s while only those actions' LPs
+        are solved.
+
+        With the IMDP below (Gamma^MI inside Gamma^IMDP) and the ``screen`` SMDP above
+        (Gamma^SMDP inside Gamma^MI), an action whose SMDP q-value is below another action's IMDP
+        q-value is below that action's MI-MDP q-value too, so it is not the argmax; and where the
+        two bounds meet, the IMDP value is the MI-MDP's without an LP. Every entry
+        is a valid lower bound whatever the screen says (a skipped LP is lambda = 0, which
+        certifies the IMDP value); a wrong screen could only cost tightness.
+        """
+        if self.screen is None:
+            return self.q_values(v, "min")
+        imdp = self.relaxation
+        low = imdp.q_values(v, "min")
+        high = self.screen.q_values(v, "min")
+        # the rounding of both sums (K and C_b + 1 terms of total <= 1); a wider margin only
+        # keeps more contenders
+        terms = imdp.successors.shape[-1] + self.screen.clusters.shape[2] + 8
+        margin = 4.0 * float(np.finfo(np.float64).eps) * terms
+        contender = high >= low.max(axis=1, keepdims=True) - margin
+        pinned = high <= low + margin  # the IMDP value is already the MI-MDP's, within the margin
+        lp = jnp.where(contender & ~pinned, self.lp_index, -1)
+        return _certified_min(v, imdp.successors, imdp.lower, imdp.upper, imdp.upper_rest, self.cluster_slots,
+                              self.cluster_lower, self.cluster_upper, self.multipliers(v, lp), self.multiplier_cap)
+
     def multipliers(self, w, lp_index, direction: int = 0):
         """``(*lp_index.shape, J, 2)`` multipliers (lambda+, lambda-) of the LPs for costs ``w``,
         from the host solver (callable under ``jit``; ``direction`` 1 for the maximizing
-        adversary's LPs, which keep their own warm starts)."""
+        adversary's LPs, which keep their own warm starts). A negative index gets zeros (no LP)."""
         shape = jax.ShapeDtypeStruct((*lp_index.shape, self.num_clusters, 2), jnp.float64)
         if self.num_clusters == 0:
             return jnp.zeros(shape.shape, shape.dtype)

@@ -74,7 +74,7 @@ def optimize_lower(abstraction, v0, tol, max_iterations: int, policy0=None, poli
 
     def body(state):
         k, backups, v, policy, _ = state
-        q = abstraction.q_values(v, "min")  # (R, A)
+        q = abstraction.greedy_q_values(v)  # (R, A)
         best = q.max(axis=1)
         kept = jnp.take_along_axis(q, policy[:, None], axis=1)[:, 0]
         policy = jnp.where(kept >= best, policy, jnp.argmax(q, axis=1).astype(jnp.int32))
@@ -217,7 +217,7 @@ def finite_horizon(abstraction, v0, horizon: int, policy=None, with_upper: bool 
         return lo, up, actions[::-1]
 
     def greedy(lo):  # one robust backup of the lower bound and the action it picks per row
-        q = abstraction.q_values(lo, "min")
+        q = abstraction.greedy_q_values(lo)
         return _set_rows(lo, rows, q.max(axis=1)), jnp.argmax(q, axis=1).astype(jnp.int32)
 
     if not with_upper:

@@ -430,3 +430,39 @@ def test_concurrent_multiplier_calls_are_safe(case, threads, request, monkeypatc
         together = list(pool.map(lambda job: lps.multipliers(job[0], ids, job[1]), jobs * 3))
     for (w, _), expected, lam in zip(jobs * 3, alone * 3, together):
         np.testing.assert_allclose(value(w, lam), expected, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("case", ["small", "unicycle_12"])
+def test_greedy_q_values_screen_out_actions_without_changing_the_backup(case, request):
+    """The SMDP screen skips LPs of actions that cannot be the best, and the greedy backup (row
+    maximum, argmax) is the one of ``q_values``; every entry stays a lower bound of it."""
+    data = request.getfixturevalue(case)
+    grid, mimdp = data[0], data[2]
+    assert mimdp.screen is not None and mimdp.screen.kind == "smdp"
+    greedy = jax.jit(lambda m, x: m.greedy_q_values(x))
+    rng = np.random.default_rng(8)
+    for start, v in ((True, np.asarray(mimdp.initial_values())), (False, rng.uniform(0, 1, mimdp.num_states))):
+        v = jnp.asarray(v).at[-1].set(0.0)
+        full = q_values(mimdp, v, "min")
+        before = mimdp.lps.stats["skipped"]
+        screened = np.asarray(greedy(mimdp, v))
+        skipped = mimdp.lps.stats["skipped"] - before
+        assert 0 < skipped and (start or skipped < full.size)  # p^0: often no LP is needed at all
+        np.testing.assert_allclose(screened.max(axis=1), full.max(axis=1), rtol=0, atol=1e-9)
+        assert np.all(screened <= full + 1e-9)
+        # the screen's own bounds hold: IMDP <= MI-MDP <= SMDP
+        smdp = np.asarray(jax.jit(lambda m, x: m.q_values(x, "min"))(mimdp.screen, v))
+        assert np.all(full <= smdp + 1e-9)
+        top2 = np.sort(full, axis=1)[:, -2:]
+        clear = top2[:, 1] - top2[:, 0] > 1e-7
+        np.testing.assert_array_equal(screened.argmax(axis=1)[clear], full.argmax(axis=1)[clear])
+
+
+def test_screening_does_not_change_synthesis(unicycle_12):
+    grid, clusters, screened = unicycle_12
+    plain = MIMDP.from_clusters(grid, clusters, screen_actions=False)
+    assert plain.screen is None and screened.screen is not None
+    a, b = sj.synthesize(screened, tol=1e-8), sj.synthesize(plain, tol=1e-8)
+    np.testing.assert_allclose(np.asarray(a.lower), np.asarray(b.lower), rtol=0, atol=1e-7)
+    np.testing.assert_allclose(np.asarray(a.lower_optimal), np.asarray(b.lower_optimal), rtol=0, atol=1e-7)
+    np.testing.assert_allclose(np.asarray(a.upper), np.asarray(b.upper), rtol=0, atol=1e-7)
