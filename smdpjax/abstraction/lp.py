@@ -237,8 +237,8 @@ class ClusterLPs:
         z_rows = np.concatenate([place(i, pc[4]) for i, pc in enumerate(pieces)]).astype(np.int64)
         z_pos = np.concatenate([np.full(pc[5].size, i) for i, pc in enumerate(pieces)]).astype(np.int64)
         z_target = np.concatenate([pc[5] for pc in pieces])
-        return dict(solver=solver, lock=threading.Lock(), count=len(part), cost_pos=cost_pos, cost_col=cost_col, z_rows=z_rows,
-                    z_pos=z_pos, z_target=z_target)
+        return dict(solver=solver, lock=threading.Lock(), count=len(part), cost_pos=cost_pos, cost_col=cost_col,
+                    z_rows=z_rows, z_pos=z_pos, z_target=z_target)
 
     def _highs_lp(self, p):
         """LP ``p`` as a ``HighsLp``: bounds on the variables, ranged rows (equality first)."""

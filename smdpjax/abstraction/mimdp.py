@@ -238,9 +238,9 @@ class MIMDP(AbstractionMixin):
         With the IMDP below (Gamma^MI inside Gamma^IMDP) and the ``screen`` SMDP above
         (Gamma^SMDP inside Gamma^MI), an action whose SMDP q-value is below another action's IMDP
         q-value is below that action's MI-MDP q-value too, so it is not the argmax; and where the
-        two bounds meet, the IMDP value is the MI-MDP's without an LP. Every entry
-        is a valid lower bound whatever the screen says (a skipped LP is lambda = 0, which
-        certifies the IMDP value); a wrong screen could only cost tightness.
+        two bounds meet, the IMDP value is the MI-MDP's without an LP. Every entry is a valid
+        lower bound whatever the screen says (a skipped LP is lambda = 0, which certifies the
+        IMDP value); a wrong screen could only cost tightness.
         """
         if self.screen is None:
             return self.q_values(v, "min")
