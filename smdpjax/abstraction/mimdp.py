@@ -255,7 +255,8 @@ class MIMDP(AbstractionMixin):
         pinned = high <= low + margin  # the IMDP value is already the MI-MDP's, within the margin
         lp = jnp.where(contender & ~pinned, self.lp_index, -1)
         return _certified_min(v, imdp.successors, imdp.lower, imdp.upper, imdp.upper_rest, self.cluster_slots,
-                              self.cluster_lower, self.cluster_upper, self.multipliers(v, lp), self.multiplier_cap)
+                              self.cluster_lower, self.cluster_upper, self.multipliers(v, lp), self.multiplier_cap,
+                              imdp_value=low)
 
     def multipliers(self, w, lp_index, direction: int = 0):
         """``(*lp_index.shape, J, 2)`` multipliers (lambda+, lambda-) of the LPs for costs ``w``,
@@ -275,7 +276,8 @@ class MIMDP(AbstractionMixin):
 
 
 # -- the certified inner value ------------------------------------------------------------------
-def certified_min(w, succ, lower, upper, upper_rest, slots, cluster_lower, cluster_upper, lam, cap=np.inf):
+def certified_min(w, succ, lower, upper, upper_rest, slots, cluster_lower, cluster_upper, lam, cap=np.inf, *,
+                  imdp_value=None):
     """The weak-duality bound ``g(lambda)`` of the module docstring, for every row.
 
     Args:
@@ -285,6 +287,8 @@ def certified_min(w, succ, lower, upper, upper_rest, slots, cluster_lower, clust
         slots: ``(..., J, L)`` cluster members as positions in ``succ`` (padding ``>= K``).
         cluster_lower, cluster_upper: ``(..., J)`` cluster bounds.
         lam: ``(..., J, 2)`` multipliers (lambda+, lambda-); clipped to ``[0, cap]``.
+        imdp_value: ``(...)`` the interval problem's value ``g(0)`` if the caller has it already
+            (computed here otherwise).
     Returns:
         ``(...)`` lower bounds of ``min <gamma, w>`` over the MI-MDP polytope: the larger of
         ``g(lambda)`` and ``g(0)`` (the IMDP value), both valid.
@@ -303,7 +307,9 @@ def certified_min(w, succ, lower, upper, upper_rest, slots, cluster_lower, clust
     offset = jnp.sum(lam_plus * cluster_lower - lam_minus * cluster_upper, axis=-1)
     bound = offset + interval_min_rows(w, w_listed, succ, lower, upper, upper_rest)
     # lambda = 0 is valid too and gives the IMDP value: never return less (inexact multipliers)
-    return jnp.maximum(bound, interval_min(w, succ, lower, upper, upper_rest))
+    if imdp_value is None:
+        imdp_value = interval_min(w, succ, lower, upper, upper_rest)
+    return jnp.maximum(bound, imdp_value)
 
 
 _certified_min = jax.jit(certified_min, static_argnums=9)  # one compilation per shape, also eagerly
