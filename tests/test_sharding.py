@@ -11,7 +11,8 @@ rounding: XLA:CPU's dot and fused reductions round a row's sum differently depen
 rows the kernel gets (on one device too: ``q_values`` of a 19-row slice can differ in the last
 bit from the same rows of the whole array), and a device holds a quarter of the rows. Both
 results are within ``rounding_allowance`` of the exact values, so they differ by at most twice
-that (measured: IMDP 0, 2I-MDP 4e-16, SMDP 9e-19), with the same strategies and iteration counts.
+that (measured: IMDP 0, 2I-MDP 4e-16, SMDP 9e-19), with the same iteration counts and the same
+strategies except at actions tied up to the tolerance (exact ties are broken by the last bit).
 The MI-MDP's LP multipliers (an interior-point solver) respond to such last-bit changes of the
 costs, which moves its certified bounds by up to ~5e-11 and may break near-ties differently.
 """
@@ -95,6 +96,9 @@ CHILD = textwrap.dedent(r'''
             save(kind + "/abstraction", a)
         s = sj.synthesize(a)
         res["unbounded"] = save_solution(kind + "/unbounded", s)
+        if not sharded:  # to tell near-ties of the strategy apart from real differences
+            arrays[kind + "/q"] = np.asarray(a.q_values(s.lower_optimal))
+            arrays[kind + "/rows"] = np.asarray(a.rows)
         res["solution_devices"] = len(s.lower.sharding.device_set)
         res["finite"] = save_solution(kind + "/finite", sj.synthesize(a, horizon=horizon))
         policy = np.arange(grid.num_states) % system.num_actions  # a fixed controller to verify
@@ -182,7 +186,9 @@ def test_solutions_equal_to_one_device(runs, kind, task):
     allowance = one[task][3]
     for key, a, b in _arrays(runs, f"{kind}/{task}"):
         if kind != "mimdp":
-            if "policy" in key:
+            if "policy" in key and task == "unbounded":
+                _assert_near_ties(runs, kind, a, b)
+            elif "policy" in key:
                 assert np.array_equal(a, b), key
             else:
                 np.testing.assert_allclose(b, a, rtol=0, atol=2 * allowance, err_msg=key)
@@ -194,6 +200,18 @@ def test_solutions_equal_to_one_device(runs, kind, task):
         assert one[task][:3] == many[task][:3]  # iterations and convergence
     else:
         assert abs(one[task][0] - many[task][0]) <= 3 and abs(one[task][1] - many[task][1]) <= 3
+
+
+def _assert_near_ties(runs, kind, policy_one, policy_many):
+    """Stationary strategies may differ only where both actions are optimal up to the value
+    iteration's tolerance: exact ties (symmetric actions get bit-identical Lemma 1 bounds) are
+    broken by the last bit of a row's sum, which depends on how many rows a device holds."""
+    arrays = runs["one"][1]
+    q, rows = arrays[kind + "/q"], arrays[kind + "/rows"]
+    differ = np.flatnonzero(policy_one[rows] != policy_many[rows])
+    assert differ.size <= 0.05 * rows.size
+    gap = np.abs(q[differ, policy_one[rows][differ]] - q[differ, policy_many[rows][differ]])
+    assert np.all(gap <= 2e-6), gap  # 2 x the default tolerance (1e-6)
 
 
 def test_explicit_mesh_is_made_automatic(runs):

@@ -24,11 +24,11 @@ import functools
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from .._pytree import pytree_dataclass, static_field
 from .base import AbstractionMixin, check_adversary
-from .clusters import cluster_members, index_dtype, max_lengths
+from .box_bounds import region_bounds
+from .clusters import index_dtype
 from .grid_clusters import GridClusters
 
 _ROWS_PER_CHUNK = 1 << 12
@@ -55,11 +55,9 @@ class IMDP(AbstractionMixin):
 
     @classmethod
     def from_clusters(cls, grid, clusters: GridClusters) -> "IMDP":
-        boxes = clusters.boxes
-        lengths = max_lengths(boxes)
-        chunks = ((cluster_members(grid, part, lengths), part.single_cell | part.inside_sink)
-                  for part in row_chunks(boxes))
-        succ, lower, upper = lemma1_bounds(chunks, clusters.prob, grid.num_cells + 1)
+        """Lemma 1 from the clusters' index boxes (``box_bounds.region_bounds``: exact sums,
+        rounded outward); successors in increasing order."""
+        succ, lower, upper = region_bounds(grid.cells, grid.periodic, clusters.boxes, clusters.prob)
         succ = succ.astype(index_dtype(grid.num_states))
         rest = jnp.asarray(clusters.prob_rest)
         return cls(successors=succ, lower=lower, upper=jnp.where(succ <= grid.num_cells, upper + rest, 0.0),
@@ -189,21 +187,6 @@ def row_chunks(tree, size: int = _ROWS_PER_CHUNK):
     rows = jax.tree_util.tree_leaves(tree)[0].shape[0]
     for start in range(0, rows, size):
         yield jax.tree.map(lambda a: a[start:start + size], tree)
-
-
-def lemma1_bounds(chunks, prob, sentinel: int):
-    """Lemma 1 for every region a cluster can meet, from chunks of ``(ids (R, A, C, K), single (R, A, C))``.
-
-    ``ids[r, a, c]`` lists the regions (states, or coarse blocks) that cluster c meets, each at
-    most once, padded with ``sentinel``; ``single`` marks clusters inside one region. Returns
-    ``(regions, lower, upper)``, each ``(R, A, W)``: per row the distinct regions met, with
-    ``lower = sum_c P(c) 1(cluster c inside region)`` and ``upper = sum_c P(c) 1(c meets region)``.
-    """
-    chunks = list(chunks)
-    width = max(int(_count_distinct(ids, sentinel).max()) for ids, _ in chunks)
-    prob = jnp.asarray(prob)
-    pieces = [_interval_bounds(ids, prob, single, sentinel, width) for ids, single in chunks]
-    return tuple(jnp.concatenate(p) for p in zip(*pieces))
 
 
 def successor_width(members, sentinel: int) -> int:

@@ -31,9 +31,9 @@ import numpy as np
 
 from .._pytree import pytree_dataclass, static_field
 from .base import AbstractionMixin, check_adversary
-from .clusters import cluster_members, max_lengths
+from .box_bounds import region_bounds
 from .grid_clusters import GridClusters
-from .imdp import IMDP, lemma1_bounds, row_chunks
+from .imdp import IMDP
 
 
 def block_layout(grid, block) -> tuple[np.ndarray, np.ndarray]:
@@ -97,17 +97,8 @@ class TwoLayerIMDP(AbstractionMixin):
         block_of, cells_of = block_layout(grid, block)
         num_blocks = cells_of.shape[0] - 1
         block_of_j = jnp.asarray(block_of)
-        lengths = max_lengths(clusters.boxes)
-
-        def chunks():
-            for part in row_chunks(clusters.boxes):
-                members = cluster_members(grid, part, lengths)
-                ids = jnp.sort(block_of_j[jnp.minimum(members, grid.num_cells + 1)], axis=-1)
-                repeat = jnp.concatenate([jnp.zeros_like(ids[..., :1], bool), ids[..., 1:] == ids[..., :-1]], -1)
-                ids = jnp.where(repeat, num_blocks + 1, ids)  # each block once per cluster
-                yield ids, jnp.sum(ids <= num_blocks, axis=-1) == 1
-
-        blocks, block_lower, block_upper = lemma1_bounds(chunks(), clusters.prob, num_blocks + 1)
+        blocks, block_lower, block_upper = region_bounds(grid.cells, grid.periodic, clusters.boxes, clusters.prob,
+                                                         block=block)
         rest = jnp.asarray(clusters.prob_rest)
         met = blocks <= num_blocks
         block_upper = jnp.where(met, block_upper + rest, 0.0)

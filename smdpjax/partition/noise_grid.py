@@ -10,7 +10,6 @@ Grids need not be uniform (``NoiseGrid.from_edges``).
 from __future__ import annotations
 
 import dataclasses
-import functools
 from collections.abc import Sequence
 
 import jax

@@ -1,0 +1,130 @@
+"""Lemma 1 from index boxes (``box_bounds.region_bounds``) against exact rational sums over a
+brute-force enumeration of the cells every box covers."""
+
+import itertools
+from fractions import Fraction
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from smdpjax.abstraction.box_bounds import FRACTION_BITS, region_bounds
+from smdpjax.abstraction.clusters import IndexBoxes
+
+CASES = {  # cells, periodic, block
+    "1d": ((7,), (False,), (1,)),
+    "1d_periodic_blocks": ((9,), (True,), (4,)),  # a partial last block on a circle
+    "2d": ((6, 5), (False, False), (1, 1)),
+    "2d_periodic": ((5, 8), (False, True), (1, 1)),
+    "2d_blocks": ((7, 6), (True, False), (3, 2)),
+    "3d_periodic": ((4, 5, 6), (False, False, True), (1, 1, 1)),
+    "3d_blocks": ((5, 4, 7), (False, True, True), (2, 3, 2)),
+}
+
+
+def random_boxes(rng, cells, periodic, rows, actions, clusters):
+    n = len(cells)
+    start = np.zeros((rows, actions, clusters, n), np.int32)
+    length = np.zeros_like(start)
+    for d, (m, p) in enumerate(zip(cells, periodic)):
+        # rows centred somewhere (wrapping on periodic axes), boxes near the centre
+        centre = rng.integers(0, m, (rows, actions, 1))
+        s = centre + rng.integers(-2, 2, (rows, actions, clusters))
+        ln = rng.integers(1, 4, (rows, actions, clusters))
+        if p:
+            full = rng.random((rows, actions, clusters)) < 0.05
+            start[..., d] = np.where(full, 0, np.mod(s, m))
+            length[..., d] = np.where(full, m, ln)
+        else:
+            lo, hi = np.clip(s, 0, m - 1), np.clip(s + ln, 1, m)
+            start[..., d], length[..., d] = lo, np.maximum(hi - lo, 1)
+    sink = rng.random((rows, actions, clusters)) < 0.2
+    miss = rng.random((rows, actions, clusters)) < 0.05  # misses the grid: the sink alone
+    start[miss], length[miss], sink[miss] = 0, 0, True
+    return IndexBoxes(start=jnp.asarray(start), length=jnp.asarray(length), sink=jnp.asarray(sink))
+
+
+def random_prob(rng, clusters):
+    prob = rng.dirichlet(np.ones(clusters)) * 0.9
+    prob[0] = 0.0  # a zero-probability cell: its regions are still listed
+    prob[1] = 1e-300  # far below the fixed-point quantum: rounded up, never down, in ``upper``
+    return prob
+
+
+def exact_bounds(cells, periodic, block, start, length, sink, prob):
+    """{region: (lower, upper)} as Fractions, by enumerating every cell of every box."""
+    shape = tuple(-(-c // b) for c, b in zip(cells, block))
+    sink_region = int(np.prod(shape))
+    met, lower, upper = set(), {}, {}
+    for c in range(len(prob)):
+        p = Fraction(float(prob[c]))
+        regions = set()
+        if np.all(length[c] > 0):
+            ranges = [[(s + k) % m if per else s + k for k in range(ln)]
+                      for s, ln, m, per in zip(start[c], length[c], cells, periodic)]
+            for cell in itertools.product(*ranges):
+                regions.add(int(np.ravel_multi_index(tuple(x // b for x, b in zip(cell, block)), shape)))
+        if sink[c]:
+            regions.add(sink_region)
+        met |= regions
+        for r in regions:
+            upper[r] = upper.get(r, 0) + p
+        if len(regions) == 1:  # inside one region (a box that misses the grid: the sink)
+            (r,) = regions
+            lower[r] = lower.get(r, 0) + p
+    return {r: (lower.get(r, Fraction(0)), upper.get(r, Fraction(0))) for r in met}, sink_region
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_bounds_are_exact_sums_rounded_outward(case):
+    cells, periodic, block = CASES[case]
+    rng = np.random.default_rng(sorted(CASES).index(case))
+    rows, actions, clusters = 6, 2, 12
+    boxes = random_boxes(rng, cells, periodic, rows, actions, clusters)
+    prob = random_prob(rng, clusters)
+    ids, lower, upper = (np.asarray(t) for t in region_bounds(cells, periodic, boxes, jnp.asarray(prob), block))
+    quantum = Fraction(clusters, 2 ** FRACTION_BITS)
+    widest = 0
+    for r, a in itertools.product(range(rows), range(actions)):
+        want, sink_region = exact_bounds(cells, periodic, block, *(np.asarray(x)[r, a] for x in
+                                                                  (boxes.start, boxes.length, boxes.sink)), prob)
+        listed = ids[r, a][ids[r, a] <= sink_region]
+        widest = max(widest, listed.size)
+        assert np.all(np.diff(listed) > 0), "successors must be distinct and increasing"
+        assert np.all(ids[r, a][listed.size:] == sink_region + 1), "padding after the listed regions"
+        assert np.all(lower[r, a][listed.size:] == 0) and np.all(upper[r, a][listed.size:] == 0)
+        assert set(listed.tolist()) == set(want), "exactly the regions some box meets"
+        for k, region in enumerate(listed):
+            lo, up = want[int(region)]
+            got_lo, got_up = Fraction(float(lower[r, a, k])), Fraction(float(upper[r, a, k]))
+            assert got_lo <= lo and lo - got_lo <= quantum + Fraction(np.spacing(float(lo)))
+            assert got_up >= up and got_up - up <= quantum + Fraction(np.spacing(float(up)))
+            assert got_up > 0
+    assert ids.shape[-1] == widest, "lists exactly as wide as the widest row"
+
+
+def test_full_turn_and_wrapping_windows():
+    """Boxes that wrap around, and a row whose boxes together cover the whole circle (the
+    window's fallback to the exact circular hull)."""
+    cells, periodic = (10,), (True,)
+    start = np.array([8, 2, 5, 0], np.int32).reshape(1, 1, 4, 1)
+    length = np.array([4, 4, 4, 0], np.int32).reshape(1, 1, 4, 1)  # 8..1, 2..5, 5..8: all 10 cells
+    sink = np.array([False, False, False, True]).reshape(1, 1, 4)
+    boxes = IndexBoxes(start=jnp.asarray(start), length=jnp.asarray(length), sink=jnp.asarray(sink))
+    prob = jnp.array([0.25, 0.25, 0.25, 0.25])
+    ids, lower, upper = region_bounds(cells, periodic, boxes, prob)
+    np.testing.assert_array_equal(np.asarray(ids[0, 0]), np.arange(11))
+    expected = np.array([1, 1, 1, 1, 1, 2, 1, 1, 2, 1, 1]) * 0.25  # cells 5 and 8 in two boxes; sink last
+    np.testing.assert_array_equal(np.asarray(upper[0, 0]), expected)
+    np.testing.assert_array_equal(np.asarray(lower[0, 0]), [0] * 10 + [0.25])  # the box that misses the grid
+
+
+def test_bad_input_is_rejected():
+    boxes = IndexBoxes(start=jnp.zeros((2, 1, 3, 2), jnp.int32), length=jnp.ones((2, 1, 3, 2), jnp.int32),
+                       sink=jnp.zeros((2, 1, 3), bool))
+    with pytest.raises(ValueError, match="block"):
+        region_bounds((4, 4), (False, False), boxes, jnp.ones(3) / 3, block=(0, 1))
+    with pytest.raises(ValueError, match="prob"):
+        region_bounds((4, 4), (False, False), boxes, jnp.ones(4) / 4)
+    with pytest.raises(ValueError, match="dimensions"):
+        region_bounds((4, 4, 4), (False,) * 3, boxes, jnp.ones(3) / 3)
