@@ -22,7 +22,6 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from smdpjax.abstraction import compute_grid_clusters
 from smdpjax.abstraction.clusters import cluster_members, max_lengths
@@ -81,7 +80,7 @@ def main(argv=None):
         write_json(args.out, dict(environment=environment(), repeats=args.repeats, rows=results))  # after each row
         if not same_lists or diff > 1e-14:
             raise SystemExit(f"row {row}: the two constructions disagree")
-        del new, old, clusters
+        new = old = clusters = None  # free this row before building the next
     print(f"wrote {args.out}")
 
 
