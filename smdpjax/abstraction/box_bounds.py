@@ -89,14 +89,14 @@ def region_bounds(cells, periodic, boxes: IndexBoxes, prob, block=None):
     windows = [_windows(geometry, part) for part in chunks()]
     size = tuple(int(v) for v in np.max(np.concatenate([np.asarray(e) for _, e in windows]), axis=0))
     size = tuple(max(v, 1) for v in size)
-    pieces = []
+    pieces, widths = [], []
     for part, (anchor, _) in zip(chunks(), windows):
         lower, upper = _window_bounds(geometry, size, part, anchor, prob)
-        listed = int(jnp.max(jnp.sum(upper > 0, axis=-1)))
-        width = max(1, min(upper.shape[-1], -(-listed // _WIDTH_QUANTUM) * _WIDTH_QUANTUM))
-        pieces.append(_compact(geometry, size, anchor, lower, upper, width))
-    width = max(int(jnp.max(jnp.sum(ids < _num_regions(geometry) + 1, axis=-1))) for ids, _, _ in pieces)
-    sentinel = _num_regions(geometry) + 1
+        widths.append(int(jnp.max(jnp.sum(upper > 0, axis=-1))))
+        chunk_width = max(1, min(upper.shape[-1], -(-widths[-1] // _WIDTH_QUANTUM) * _WIDTH_QUANTUM))
+        pieces.append(_compact(geometry, size, anchor, lower, upper, chunk_width))
+    width = max(widths)  # padding rows copy a real row, so they never widen the lists
+    sentinel = math.prod(_regions_per_dim(geometry)) + 1
 
     def pad(x, fill):
         x = x[:, :width]
@@ -108,9 +108,10 @@ def region_bounds(cells, periodic, boxes: IndexBoxes, prob, block=None):
     return ids, lower, upper
 
 
-def _num_regions(geometry) -> int:
+def _regions_per_dim(geometry) -> tuple:
+    """Regions per dimension: ``ceil(cells / block)`` (a last partial block counts)."""
     cells, _, block = geometry
-    return math.prod(-(-c // b) for c, b in zip(cells, block))
+    return tuple(-(-c // b) for c, b in zip(cells, block))
 
 
 def _region_ranges(geometry, boxes: IndexBoxes, d: int):
@@ -119,7 +120,7 @@ def _region_ranges(geometry, boxes: IndexBoxes, d: int):
     for a box that misses the grid."""
     cells, periodic, block = geometry
     n_d, b_d = cells[d], block[d]
-    m = -(-n_d // b_d)
+    m = _regions_per_dim(geometry)[d]
     start, length = boxes.start[..., d], boxes.length[..., d]
     first = start // b_d
     end = start + length - 1  # last cell, unwrapped
@@ -139,10 +140,9 @@ def _region_ranges(geometry, boxes: IndexBoxes, d: int):
 def _windows(geometry, boxes: IndexBoxes):
     """Per row and dimension the first region coordinate of its window and the window's extent,
     each ``(rows, n)`` int32."""
-    cells, periodic, block = geometry
+    periodic = geometry[1]
     anchors, extents = [], []
-    for d in range(len(periodic)):
-        m = -(-cells[d] // block[d])
+    for d, m in enumerate(_regions_per_dim(geometry)):
         first, count = _region_ranges(geometry, boxes, d)
         met = count > 0
         any_met = jnp.any(met, axis=-1)
@@ -182,8 +182,7 @@ def _circular_hull(first, count, m: int):
 
 def _window_coordinates(geometry, size, anchor, d):
     """``(rows, H_d)`` region coordinates of a row's window in dimension ``d`` (``-1``: off grid)."""
-    cells, periodic, block = geometry
-    m = -(-cells[d] // block[d])
+    periodic, m = geometry[1], _regions_per_dim(geometry)[d]
     x = anchor[:, d, None] + jnp.arange(size[d], dtype=jnp.int32)
     return jnp.mod(x, m) if periodic[d] else jnp.where(x < m, x, -1)
 
@@ -212,17 +211,16 @@ def _window_bounds(geometry, size, boxes: IndexBoxes, anchor, prob):
     Sums are exact integer sums of P_W in fixed point (rounded outward once per term and once at
     the end), so a difference array over the window, whose prefix sums cancel terms, loses nothing.
     """
-    cells, periodic, block = geometry
+    periodic, turn = geometry[1], _regions_per_dim(geometry)
     n = len(size)
     rows = boxes.sink.shape[0]
     lo, count = [], []
     for d in range(n):
         first, cnt = _region_ranges(geometry, boxes, d)
-        m = -(-cells[d] // block[d])
         offset = first - anchor[:, d, None]
         if periodic[d]:
-            offset = jnp.where(offset < 0, offset + m, offset)
-            offset = jnp.where(cnt >= m, 0, offset)  # a full turn starts at the window's start
+            offset = jnp.where(offset < 0, offset + turn[d], offset)
+            offset = jnp.where(cnt >= turn[d], 0, offset)  # a full turn starts at the window's start
         lo.append(offset)
         count.append(cnt)
     meets = functools.reduce(jnp.logical_and, [c > 0 for c in count])
@@ -242,7 +240,6 @@ def _window_bounds(geometry, size, boxes: IndexBoxes, anchor, prob):
     p_meets = jnp.where(meets, p_up, 0)
     p_inside = jnp.where(inside, p_lo, 0)
 
-    turn = [-(-cells[d] // block[d]) for d in range(n)]
     wrap_dims = [d for d in range(n) if periodic[d]]
 
     def corners(lo_r, count_r, wraps):
@@ -299,9 +296,8 @@ def _window_bounds(geometry, size, boxes: IndexBoxes, anchor, prob):
 def _compact(geometry, size, anchor, lower, upper, width):
     """The listed regions (``upper > 0``) of each window as ``(rows, width)`` lists, in increasing
     order (the sink last), which the MI-MDP's slot lookups (a binary search) rely on."""
-    cells, periodic, block = geometry
+    periodic, shape = geometry[1], _regions_per_dim(geometry)
     n = len(size)
-    shape = tuple(-(-c // b) for c, b in zip(cells, block))
     sentinel = math.prod(shape) + 1
     rows = anchor.shape[0]
     # A window that wraps around a periodic dimension visits its coordinates rotated: put each
