@@ -16,9 +16,14 @@ once every state of rank < k has been offered is
     M(k) = sum_B clip(sum_{i in B} l_i + sum_{i in B, rank_i < k} (u_i - l_i), lo_B, hi_B),
 
 monotone in k; a bisection finds where it reaches 1, and the state of rank k* - 1 takes the rest.
+The order of the cells inside a block is the block's own (it does not depend on the row): each
+call sorts the B blocks' cells, puts every row's capacities in that order and takes their prefix
+sums once, so that a bisection step only reads, per block met, the prefix sums at the number of
+the block's cells ranked below k (a binary search in the block's sorted ranks).
 Blocks that no bounded reachable set meets (only the remainder can put mass there) are handled
-in aggregate through a sorted list of the blocks' lowest ranks. O(N log N + R A T S log N) per
-iteration, T the blocks a row meets, S the cells per block.
+in aggregate through a sorted list of the blocks' lowest ranks. Per iteration:
+O(N log N + B S log S + R A T S) once, then O(R A T log S) per bisection step (log N steps),
+T the blocks a row meets, S the cells per block.
 """
 
 from __future__ import annotations
@@ -171,38 +176,80 @@ def two_layer_min(w, blocks, block_lower, block_upper, lower, upper, cells_of, u
         blocks, block_lower, block_upper: ``(..., T)``; lower, upper: ``(..., T, S)``.
         cells_of: ``(B+1, S)``; upper_rest: scalar.
     Returns ``(...)``.
+
+    The order of the cells inside a block depends on the block alone, not on the row: the
+    ``B + 1`` blocks are sorted once per call, every row's fine bounds are gathered into that
+    order and prefix-summed once, and each bisection step then reads, per block met, the prefix
+    sums at the number of the block's cells ranked below ``k`` (a binary search in the block's
+    sorted ranks): O(T log S) per step instead of O(T S).
     """
     n_states = w.shape[0]
     order = jnp.argsort(w, stable=True)
     rank = jnp.zeros(n_states, jnp.int32).at[order].set(jnp.arange(n_states, dtype=jnp.int32))
     w_sorted = w[order]
 
-    # every block's lowest rank; blocks sorted by it, with prefix sums of their cheapest value
-    block_min_rank = jnp.min(rank.at[cells_of].get(mode="fill", fill_value=n_states), axis=-1)  # (B+1,)
+    # every block's cells in increasing rank (padding last, rank n_states); one extra all-padding
+    # block for the padding of `blocks`
+    num_blocks, size = cells_of.shape
+    padded_cells = jnp.concatenate([cells_of, jnp.full((1, size), n_states, cells_of.dtype)])
+    cell_rank = rank.at[padded_cells].get(mode="fill", fill_value=n_states)  # (B+2, S)
+    within = jnp.argsort(cell_rank, axis=-1)
+    sorted_rank = jnp.take_along_axis(cell_rank, within, -1)  # (B+2, S)
+    sorted_w = w.at[jnp.take_along_axis(padded_cells, within, -1)].get(mode="fill", fill_value=0.0)
+
+    # block order by lowest rank, with prefix sums of their cheapest value (for unmet blocks)
+    block_min_rank = sorted_rank[:num_blocks, 0]
     sorted_min_rank = jnp.sort(block_min_rank)
     block_prefix = jnp.concatenate([jnp.zeros(1), jnp.cumsum(w_sorted[jnp.minimum(sorted_min_rank, n_states - 1)])])
 
-    cells = cells_of.at[blocks].get(mode="fill", fill_value=n_states)  # (..., T, S)
-    valid = cells < n_states
-    r = jnp.where(valid, rank.at[cells].get(mode="fill", fill_value=n_states), n_states)
-    w_i = jnp.where(valid, w.at[cells].get(mode="fill", fill_value=0.0), 0.0)
-    lo = jnp.where(valid, lower, 0.0)
-    cap = jnp.where(valid, upper - lower, 0.0)
-    met = blocks < cells_of.shape[0]
-    sum_l = lo.sum(-1)
+    met = blocks < num_blocks
+    block_row = jnp.minimum(blocks, num_blocks)  # padding -> the all-padding block
+    # Sums over a block do not depend on the order (and padding cells have zero bounds and
+    # value); only the capacities are put in rank order, for their prefix sums.
+    sum_l = lower.sum(-1)
+    base = (lower * w.at[padded_cells].get(mode="fill", fill_value=0.0)[block_row]).sum(-1)
+    cap = jnp.take_along_axis(upper - lower, within[block_row], -1)  # (..., T, S) in rank order
+    w_i = sorted_w[block_row]
+    cum_cap = _prefix_sums(cap)
+    cum_cost = _prefix_sums(cap * w_i)
     floor = jnp.where(met, jnp.maximum(block_lower, sum_l), 0.0)
-    ceil = jnp.where(met, jnp.minimum(block_upper, sum_l + cap.sum(-1)), 0.0)
-    base = (lo * w_i).sum(-1)
-    f_floor = base + _fill_cost(r, cap, w_i, floor - sum_l)
-    f_ceil = base + _fill_cost(r, cap, w_i, ceil - sum_l)
-    met_min_rank = jnp.where(met, jnp.min(r, axis=-1), n_states)
+    ceil = jnp.where(met, jnp.minimum(block_upper, sum_l + cum_cap[..., -1]), 0.0)
+
+    def prefix_at(prefix, count):  # sum of the first `count` entries
+        at = jnp.take_along_axis(prefix, jnp.maximum(count - 1, 0)[..., None], -1)[..., 0]
+        return jnp.where(count > 0, at, 0.0)
+
+    def fill_cost(amount):  # pour `amount` into a block's cells in increasing rank
+        full = jnp.sum(cum_cap <= amount[..., None], -1)  # cells filled up
+        w_next = jnp.take_along_axis(w_i, jnp.minimum(full, size - 1)[..., None], -1)[..., 0]
+        partial = jnp.where(full < size, amount - prefix_at(cum_cap, full), 0.0)
+        return prefix_at(cum_cost, full) + partial * w_next
+
+    f_floor = base + fill_cost(floor - sum_l)
+    f_ceil = base + fill_cost(ceil - sum_l)
+    met_min_rank = jnp.where(met, sorted_rank[block_row, 0], n_states)
+
+    search_steps = int(size).bit_length()
+    flat_rank = sorted_rank.reshape(-1)
+    row_start = block_row * size
+
+    def count_below(k):  # per block met: its cells ranked below k (binary search in sorted_rank)
+        k = k[..., None]
+
+        def step(_, bounds):
+            lo_i, hi_i = bounds
+            mid = (lo_i + hi_i) // 2
+            below = (lo_i < hi_i) & (flat_rank[row_start + jnp.minimum(mid, size - 1)] < k)
+            return jnp.where(below, mid + 1, lo_i), jnp.where(below | (lo_i >= hi_i), hi_i, mid)
+
+        zeros = jnp.zeros(blocks.shape, jnp.int32)
+        return jax.lax.fori_loop(0, search_steps, step, (zeros, zeros + size))[0]
 
     def mass_and_cost(k):
-        offered = r < k[..., None, None]
-        free = sum_l + jnp.sum(jnp.where(offered, cap, 0.0), -1)
+        count = count_below(k)
+        free = sum_l + prefix_at(cum_cap, count)
         m = jnp.clip(free, floor, ceil)
-        cost = jnp.where(free < floor, f_floor,
-                         jnp.where(free > ceil, f_ceil, base + jnp.sum(jnp.where(offered, cap * w_i, 0.0), -1)))
+        cost = jnp.where(free < floor, f_floor, jnp.where(free > ceil, f_ceil, base + prefix_at(cum_cost, count)))
         cost = jnp.where(met, cost, 0.0)
         # blocks no bounded reachable set meets: capacity upper_rest each, at their cheapest value
         n_all = jnp.searchsorted(sorted_min_rank, k, side="left")
@@ -228,11 +275,14 @@ def two_layer_min(w, blocks, block_lower, block_upper, lower, upper, cells_of, u
     return jnp.where(k_star > 0, cost_j + (1.0 - mass_j) * w_sorted[j], cost_0)
 
 
-def _fill_cost(rank, cap, w, amount):
-    """Cost of pouring ``amount (..., T)`` into each block's cells in increasing rank order."""
-    order = jnp.argsort(rank, axis=-1)
-    cap_s = jnp.take_along_axis(cap, order, -1)
-    w_s = jnp.take_along_axis(w, order, -1)
-    before = jnp.cumsum(cap_s, -1) - cap_s
-    poured = jnp.clip(amount[..., None] - before, 0.0, cap_s)
-    return jnp.sum(poured * w_s, -1)
+_MATMUL_PREFIX_MAX = 128
+
+
+def _prefix_sums(x):
+    """Inclusive prefix sums over the last axis. Short axes as a product with a triangular
+    matrix of ones: on the CPU, ``cumsum`` over a last axis of 18-81 entries ran 2.5-6x slower
+    (``benchmarks/two_layer.py``); over 256 entries the two cost the same."""
+    size = x.shape[-1]
+    if size > _MATMUL_PREFIX_MAX:
+        return jnp.cumsum(x, -1)
+    return jnp.matmul(x, jnp.triu(jnp.ones((size, size), x.dtype)), precision=jax.lax.Precision.HIGHEST)
