@@ -220,6 +220,7 @@ def two_layer_min(w, blocks, block_lower, block_upper, lower, upper, cells_of, u
         return jnp.where(count > 0, at, 0.0)
 
     def fill_cost(amount):  # pour `amount` into a block's cells in increasing rank
+        amount = jnp.maximum(amount, 0.0)  # a rounding below 0 pours nothing
         full = jnp.sum(cum_cap <= amount[..., None], -1)  # cells filled up
         w_next = jnp.take_along_axis(w_i, jnp.minimum(full, size - 1)[..., None], -1)[..., 0]
         partial = jnp.where(full < size, amount - prefix_at(cum_cap, full), 0.0)
@@ -280,8 +281,9 @@ _MATMUL_PREFIX_MAX = 128
 
 def _prefix_sums(x):
     """Inclusive prefix sums over the last axis. Short axes as a product with a triangular
-    matrix of ones: on the CPU, ``cumsum`` over a last axis of 18-81 entries ran 2.5-6x slower
-    (``benchmarks/two_layer.py``); over 256 entries the two cost the same."""
+    matrix of ones: on the CPU, ``cumsum`` over the capacities of the 2I-MDP rows of Table 1
+    (9-81 cells per block) took 1.0-1.9x as long (``benchmarks/two_layer.py``), and 3-6x on
+    random (R, T, S) arrays with S = 18 and 81; over 256 entries the two cost the same."""
     size = x.shape[-1]
     if size > _MATMUL_PREFIX_MAX:
         return jnp.cumsum(x, -1)

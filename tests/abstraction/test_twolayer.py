@@ -116,3 +116,25 @@ def test_default_block_and_abstract_option():
     assert tl3.block_shape == (3, 3)
     with pytest.raises(ValueError, match="positive"):
         sj.abstract(system, grid, noise, "2imdp", block=0)
+
+
+@pytest.mark.parametrize("size", [1, 7, 81, 200])
+def test_prefix_sums_match_cumsum(size):
+    from smdpjax.abstraction.twolayer import _MATMUL_PREFIX_MAX, _prefix_sums
+
+    x = np.random.default_rng(size).uniform(0, 1, (3, 4, size))
+    got = np.asarray(_prefix_sums(jnp.asarray(x)))
+    np.testing.assert_allclose(got, np.cumsum(x, -1), rtol=1e-15, atol=size * 1e-16)
+    assert (size > _MATMUL_PREFIX_MAX) == (size == 200)  # both paths are exercised
+
+
+def test_solver_same_with_either_prefix_sum(monkeypatch):
+    from smdpjax.abstraction import twolayer
+
+    system, grid, noise = PROBLEMS["gaussian"]
+    tl = TwoLayerIMDP.from_clusters(grid, compute_grid_clusters(system, grid, noise), block=(3, 3))
+    v = jnp.asarray(np.random.default_rng(3).uniform(0, 1, grid.num_states)).at[-1].set(0.0)
+    by_matmul = np.asarray(tl.q_values(v, "min"))
+    monkeypatch.setattr(twolayer, "_MATMUL_PREFIX_MAX", 0)
+    by_cumsum = np.asarray(tl.q_values(v, "min"))
+    np.testing.assert_allclose(by_cumsum, by_matmul, rtol=0, atol=1e-15)
