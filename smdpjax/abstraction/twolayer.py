@@ -176,12 +176,6 @@ def two_layer_min(w, blocks, block_lower, block_upper, lower, upper, cells_of, u
         blocks, block_lower, block_upper: ``(..., T)``; lower, upper: ``(..., T, S)``.
         cells_of: ``(B+1, S)``; upper_rest: scalar.
     Returns ``(...)``.
-
-    The order of the cells inside a block depends on the block alone, not on the row: the
-    ``B + 1`` blocks are sorted once per call, every row's fine bounds are gathered into that
-    order and prefix-summed once, and each bisection step then reads, per block met, the prefix
-    sums at the number of the block's cells ranked below ``k`` (a binary search in the block's
-    sorted ranks): O(T log S) per step instead of O(T S).
     """
     n_states = w.shape[0]
     order = jnp.argsort(w, stable=True)
