@@ -16,10 +16,12 @@ def solved():
     grid = sj.StateGrid([0, 0], [1, 1], 20, reach=[([0.8, 0.8], [1, 1])], avoid=[([0.4, 0.3], [0.6, 0.7])])
     noise = sj.NoiseGrid.ball([0, 0], 2.1, 12)
     sols = {k: sj.synthesize(sj.abstract(system, grid, noise, k)) for k in ("imdp", "smdp")}
+    # the MI-MDP's strategy sweeps iterate frozen LP multipliers (the default): checked here too
+    sols["mimdp"] = sj.synthesize(sj.abstract(system, grid, noise, "mimdp", lp_backend="highs"))
     return system, grid, sols
 
 
-@pytest.mark.parametrize("kind", ["smdp", "imdp"])
+@pytest.mark.parametrize("kind", ["smdp", "imdp", "mimdp"])
 def test_monte_carlo_lies_in_bounds(solved, kind):
     """Theorem 5: the closed loop satisfies the specification with a probability in [p_low, p_up].
 

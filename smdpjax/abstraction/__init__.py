@@ -50,7 +50,7 @@ def abstract(system: System, state_grid: StateGrid, noise_grid: NoiseGrid, kind:
         noise_grid: the partition C of W.
         kind: ``"imdp"``, ``"2imdp"`` (option ``block``: coarse block shape in cells),
             ``"mimdp"`` (options ``extra_clusters``, ``lp_backend="clarabel"|"highs"``,
-            ``screen_actions``, see ``MIMDP.from_clusters``) or ``"smdp"``.
+            ``screen_actions``, ``freeze_multipliers``, see ``MIMDP.from_clusters``) or ``"smdp"``.
         method: reachable-set enclosure: ``"natural"``, ``"centered"`` or ``"both"``.
         policy: optional ``(N,)`` action index per cell: abstract only that action in each cell
             (``|A| = 1``), to verify a fixed controller with ``verify(abstraction)``.

@@ -27,6 +27,13 @@ class AbstractionMixin:
     """
 
     kind: str = "abstract"
+    # True for a class whose inner problem calls an outside solver (the MI-MDP's LPs) and that
+    # offers ``freeze``/``frozen_at_zero``: views whose backups bound its own from the
+    # conservative side at every value vector without calling the solver, exact at the vector
+    # they were frozen at. Loops that apply one operator many times refreeze now and then
+    # instead of solving at every backup (the strategy sweeps of
+    # ``value_iteration.optimize_lower``).
+    freezable = False
 
     @property
     def num_states(self) -> int:

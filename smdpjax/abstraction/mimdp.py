@@ -88,6 +88,8 @@ class MIMDP(AbstractionMixin):
             lie inside Gamma^MI (Theorem 2): its robust q-values bound this class's from above,
             which lets a greedy backup skip the LPs of actions that cannot be the best one
             (``greedy_q_values``).
+        frozen: ``(R, A, J, 2)`` multipliers used instead of the LPs (``None``: solve the LPs at
+            every call). See ``freeze``.
     """
 
     relaxation: IMDP
@@ -101,12 +103,20 @@ class MIMDP(AbstractionMixin):
     multiplier_cap: float = static_field(default=4.0)
     kind: str = static_field(default="mimdp")
     screen: SMDP | None = None
+    frozen: jax.Array | None = None
+    freeze_multipliers: bool = static_field(default=True)
+
+    @property
+    def freezable(self) -> bool:
+        """Whether loops may iterate frozen views (``freeze``) instead of solving LPs at every
+        backup (``from_clusters(freeze_multipliers=...)``)."""
+        return self.freeze_multipliers
 
     @classmethod
     def from_clusters(cls, grid, clusters: GridClusters, extra_clusters=None, *, lp_backend: str = "clarabel",
                       block_size: int = 1, max_buckets: int = 16, multiplier_cap: float = 4.0,
                       threads: int | None = None, solver_settings: dict | None = None,
-                      screen_actions: bool = True) -> "MIMDP":
+                      screen_actions: bool = True, freeze_multipliers: bool = True) -> "MIMDP":
         """MI-MDP with the informed clusters of ``clusters`` (plus ``extra_clusters``).
 
         Args:
@@ -132,6 +142,10 @@ class MIMDP(AbstractionMixin):
                 ``{"tol_gap_rel": 1e-7}``, or HiGHS option names).
             screen_actions: keep the SMDP of ``clusters`` (``screen``) so that greedy backups
                 solve LPs only for the actions that can still be the best (with several actions).
+            freeze_multipliers: let strategy sweeps and evaluations iterate with frozen
+                multipliers, refreshed by one LP per row now and then (``freeze``;
+                ``synthesis.value_iteration``), instead of solving every row's LP at every
+                backup. Sound either way; ``False`` reproduces the LP-per-backup iteration.
         """
         n_cells = grid.num_cells
         sentinel = n_cells + 1
@@ -186,7 +200,8 @@ class MIMDP(AbstractionMixin):
         screen = SMDP.from_clusters(grid, clusters) if screen_actions and num_actions > 1 else None
         return cls(relaxation=imdp, cluster_slots=jnp.asarray(slots), cluster_lower=jnp.asarray(clo),
                    cluster_upper=jnp.asarray(cup), lp_index=jnp.asarray(lp_index), rows=imdp.rows,
-                   labels=imdp.labels, lps=lps, multiplier_cap=float(multiplier_cap), screen=screen)
+                   labels=imdp.labels, lps=lps, multiplier_cap=float(multiplier_cap), screen=screen,
+                   freeze_multipliers=bool(freeze_multipliers))
 
     # -- interface ----------------------------------------------------------------------------
     @property
@@ -210,7 +225,36 @@ class MIMDP(AbstractionMixin):
         return dataclasses.replace(self, relaxation=self.relaxation.restrict(actions),
                                    cluster_slots=pick(self.cluster_slots), cluster_lower=pick(self.cluster_lower),
                                    cluster_upper=pick(self.cluster_upper), lp_index=pick(self.lp_index),
-                                   screen=None)  # one action: nothing to screen
+                                   screen=None,  # one action: nothing to screen
+                                   frozen=None if self.frozen is None else pick(self.frozen))
+
+    def freeze(self, v, adversary: str = "min") -> "MIMDP":
+        """This MI-MDP with its multipliers fixed at the LPs' for ``v``: a view whose backups need
+        no LP, for loops that apply the operator many times (the strategy sweeps of
+        ``value_iteration.optimize_lower``).
+
+        By weak duality (module docstring) *any* multipliers give a bound on the conservative
+        side, so the frozen operator ``T_lambda`` lies below the exact one for ``"min"`` (above it
+        for ``"max"``) at every value vector, and equals it at ``v`` when the LPs are solved
+        exactly: iterating it from below (above) gives valid lower (upper) bounds throughout. Where
+        this view is already frozen, each (row, action) keeps whichever of its old and new
+        multipliers certifies more at ``v``, so ``T_lambda(v)`` never falls by refreezing.
+        """
+        minimize = check_adversary(adversary)
+        w = v if minimize else -v
+        fresh = self.multipliers(w, self.lp_index, 0 if minimize else 1)
+        if self.frozen is None:
+            return dataclasses.replace(self, frozen=fresh)
+        old = self.q_values(v, adversary)
+        new = dataclasses.replace(self, frozen=fresh).q_values(v, adversary)
+        better = (new >= old) if minimize else (new <= old)
+        return dataclasses.replace(self, frozen=jnp.where(better[..., None, None], fresh, self.frozen))
+
+    def frozen_at_zero(self) -> "MIMDP":
+        """This MI-MDP frozen at zero multipliers (its IMDP relaxation's operator): the start of a
+        loop that refreezes, whose carried PyTree must keep one structure."""
+        shape = (*self.lp_index.shape, self.num_clusters, 2)
+        return dataclasses.replace(self, frozen=jnp.zeros(shape, jnp.float64))
 
     def q_values(self, v, adversary: str = "min", actions=None):
         """Certified inner values (see the module docstring): for ``"min"`` a lower bound of
@@ -218,15 +262,16 @@ class MIMDP(AbstractionMixin):
         an upper bound of the maximum. ``(R, A)``, or ``(R,)`` with ``actions: (R,)``."""
         minimize = check_adversary(adversary)
         imdp = self.relaxation
+        frozen = self.lp_index if self.frozen is None else self.frozen  # a placeholder when not frozen
         arrays = (imdp.successors, imdp.lower, imdp.upper, self.cluster_slots, self.cluster_lower,
-                  self.cluster_upper, self.lp_index)
+                  self.cluster_upper, self.lp_index, frozen)
         if actions is not None:
             arrays = tuple(jnp.take_along_axis(a, actions.reshape((-1, 1) + (1,) * (a.ndim - 2)), axis=1)[:, 0]
                            for a in arrays)
-        succ, lower, upper, slots, clo, cup, lp = arrays
+        succ, lower, upper, slots, clo, cup, lp, frozen = arrays
         w = v if minimize else -v
-        value = _certified_min(w, succ, lower, upper, imdp.upper_rest, slots, clo, cup,
-                               self.multipliers(w, lp, 0 if minimize else 1), self.multiplier_cap)
+        lam = self.multipliers(w, lp, 0 if minimize else 1) if self.frozen is None else frozen
+        value = _certified_min(w, succ, lower, upper, imdp.upper_rest, slots, clo, cup, lam, self.multiplier_cap)
         return value if minimize else -value
 
     def greedy_q_values(self, v):
@@ -242,7 +287,7 @@ class MIMDP(AbstractionMixin):
         lower bound whatever the screen says (a skipped LP is lambda = 0, which certifies the
         IMDP value); a wrong screen could only cost tightness.
         """
-        if self.screen is None:
+        if self.screen is None or self.frozen is not None:  # nothing to skip without LPs
             return self.q_values(v, "min")
         imdp = self.relaxation
         low = imdp.q_values(v, "min")

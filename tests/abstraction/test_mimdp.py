@@ -466,3 +466,54 @@ def test_screening_does_not_change_synthesis(unicycle_12):
     np.testing.assert_allclose(np.asarray(a.lower), np.asarray(b.lower), rtol=0, atol=1e-7)
     np.testing.assert_allclose(np.asarray(a.lower_optimal), np.asarray(b.lower_optimal), rtol=0, atol=1e-7)
     np.testing.assert_allclose(np.asarray(a.upper), np.asarray(b.upper), rtol=0, atol=1e-7)
+
+
+# -- frozen multipliers ----------------------------------------------------------------------
+@pytest.mark.parametrize("adversary", ["min", "max"])
+def test_frozen_view_is_exact_where_frozen_and_conservative_elsewhere(small, adversary):
+    """Weak duality with fixed multipliers: the frozen operator equals the LP one at the values it
+    was frozen at, bounds the true LP value from the conservative side at any other values (checked
+    against vertex solutions), calls no LP, and refreezing never loses what it had."""
+    grid, _, mimdp, _ = small
+    sign = 1.0 if adversary == "min" else -1.0  # sign * q: larger is tighter
+    rng = np.random.default_rng(11)
+    v = jnp.asarray(rng.uniform(0, 1, grid.num_states))
+    other = jnp.asarray(rng.uniform(0, 1, grid.num_states))
+    freeze = jax.jit(lambda m, x: m.freeze(x, adversary))
+    frozen = freeze(mimdp, v)
+    assert frozen.frozen.shape == (*mimdp.lp_index.shape, mimdp.num_clusters, 2)
+    calls = mimdp.lps.stats["calls"]
+    at_v, elsewhere = q_values(frozen, v, adversary), q_values(frozen, other, adversary)
+    assert mimdp.lps.stats["calls"] == calls
+    np.testing.assert_allclose(at_v, q_values(mimdp, v, adversary), rtol=0, atol=1e-9)
+    exact = q_values(mimdp, other, adversary)
+    assert np.all(sign * elsewhere <= sign * exact + 1e-9)
+    assert np.max(sign * (exact - elsewhere)) > 1e-4  # stale multipliers do cost tightness here
+    for r, a in [(0, 0), (3, 1), (7, 2), (mimdp.num_rows - 1, 3)]:
+        truth = vertex_reference(mimdp, r, a, np.asarray(other)) if sign > 0 else \
+            -vertex_reference(mimdp, r, a, -np.asarray(other))
+        assert sign * elsewhere[r, a] <= sign * truth + 1e-12
+    refrozen = freeze(frozen, other)
+    again = q_values(refrozen, other, adversary)
+    assert np.all(sign * again >= sign * elsewhere - 1e-12)
+    np.testing.assert_allclose(again, exact, rtol=0, atol=1e-9)
+    # a strategy's view keeps its own rows' multipliers
+    actions = jnp.asarray(rng.integers(0, mimdp.num_actions, mimdp.num_rows), jnp.int32)
+    picked = q_values(refrozen.restrict(actions), other, adversary)[:, 0]
+    np.testing.assert_allclose(picked, again[np.arange(mimdp.num_rows), np.asarray(actions)], rtol=0, atol=1e-12)
+
+
+def test_frozen_sweeps_reach_the_values_of_an_lp_at_every_sweep(unicycle_12):
+    """Synthesis whose strategy sweeps use frozen multipliers (the default) ends within the
+    tolerance's reach of the synthesis that solves every row's LP at every sweep: same certified
+    values, optimal lower bounds and upper bounds."""
+    grid, clusters, _ = unicycle_12
+    sols = {}
+    for freeze in (True, False):
+        mimdp = MIMDP.from_clusters(grid, clusters, lp_backend="highs", freeze_multipliers=freeze)
+        assert mimdp.freezable is freeze
+        sols[freeze] = sj.synthesize(mimdp, tol=1e-9)
+        assert sols[freeze].converged
+    for name in ("lower", "lower_optimal", "upper"):
+        np.testing.assert_allclose(np.asarray(getattr(sols[True], name)), np.asarray(getattr(sols[False], name)),
+                                   rtol=0, atol=1e-6, err_msg=name)
