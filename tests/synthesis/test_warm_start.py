@@ -7,7 +7,7 @@ import pytest
 import smdpjax as sj
 from smdpjax.partition import AVOID, NONTERMINAL, REACH
 from smdpjax.synthesis import _pessimistic, _warm_start
-from smdpjax.synthesis.value_iteration import WARM_MARGINS, warm_margins
+from smdpjax.synthesis.value_iteration import BEYOND_TOL, WARM_MARGINS, warm_margins
 
 
 def idle_or_gamble():
@@ -35,32 +35,44 @@ def test_a_guess_above_the_value_is_refused_and_one_below_is_taken():
     imdp = idle_or_gamble()
     v0 = imdp.initial_values()
     gamble = jnp.array([1], jnp.int32)
-    assert _warm_start(imdp, imdp.restrict(gamble), v0, jnp.array([0.5 + 1e-6, 1.0, 0.0]), 1e-6)[0] is None
+    assert _warm_start(imdp, imdp.restrict(gamble), v0, jnp.array([0.5 + 1e-3, 1.0, 0.0]), 1e-6)[0] is None
+    # just above: the margins beyond tol take it below the value, and only there
+    start, _ = _warm_start(imdp, imdp.restrict(gamble), v0, jnp.array([0.5 + 1e-6, 1.0, 0.0]), 1e-6)
+    assert start is not None and float(start[0]) == pytest.approx(0.5 + 1e-6 - 1e-5, abs=1e-15)
     start, _ = _warm_start(imdp, imdp.restrict(gamble), v0, jnp.array([0.4, 1.0, 0.0]), 1e-6)
     assert start is not None and 0.4 - 1e-7 < float(start[0]) < 0.4
     lower, _, _ = _pessimistic(imdp, v0, gamble, 1e-12, 1000, jnp.array([0.4, 1.0, 0.0]))
     assert 0.5 - 1e-12 <= float(lower[0]) <= 0.5
 
 
-def test_the_tolerance_itself_is_the_last_margin_tried():
-    """Cell 0 stays put with probability p and reaches the goal otherwise (value 1). From
-    1 - m a backup gains m (1 - p): with 1 - p = 2 slack / tol only the margin tol gains more than
-    the rounding bound slack, and tol lies strictly between two rungs of the ladder."""
+def leaky_cell(stay):
+    """Cell 0 stays put with probability ``stay`` and reaches the goal (cell 1) otherwise."""
+    return sj.IMDP(successors=jnp.array([[[0, 1]]], jnp.int16), lower=jnp.array([[[stay, 1.0 - stay]]]),
+                   upper=jnp.array([[[stay, 1.0 - stay]]]), upper_rest=jnp.asarray(0.0),
+                   rows=jnp.array([0], jnp.int32), labels=jnp.array([NONTERMINAL, REACH, AVOID], jnp.int8))
+
+
+@pytest.mark.parametrize("needed, tries", [(1.0, 4), (10.0, 5), (100.0, 6), (1000.0, None)])
+def test_margins_go_up_to_the_tolerance_then_beyond_it_before_a_cold_start(needed, tries):
+    """From 1 - m a backup of ``leaky_cell`` gains m (1 - stay): with 1 - stay = 2 slack /
+    (needed tol) the margins below ``needed * tol`` gain at most the rounding bound slack, so the
+    first margin that passes is ``needed * tol`` (tol lies strictly between two rungs of the
+    ladder). Beyond 100 tol none is tried: the cold start."""
     probe = idle_or_gamble()
     slack = 2.0 * float(probe.rounding_per_backup())
     tol = 5e4 * slack  # between slack * 1e4 and slack * 1e5
-    stay = 1.0 - 2.0 * slack / tol
-    imdp = sj.IMDP(successors=jnp.array([[[0, 1]]], jnp.int16), lower=jnp.array([[[stay, 1.0 - stay]]]),
-                   upper=jnp.array([[[stay, 1.0 - stay]]]), upper_rest=jnp.asarray(0.0),
-                   rows=jnp.array([0], jnp.int32), labels=jnp.array([NONTERMINAL, REACH, AVOID], jnp.int8))
+    imdp = leaky_cell(1.0 - 2.0 * slack / (needed * tol))
     assert float(imdp.rounding_per_backup()) == float(probe.rounding_per_backup())
     margins = np.asarray(warm_margins(slack, tol))
-    tried = margins[:np.flatnonzero(np.diff(margins) <= 0)[0] + 1]
-    np.testing.assert_allclose(tried, [slack * 1e2, slack * 1e3, slack * 1e4, tol], rtol=1e-12)
+    tried = margins[np.concatenate([[True], margins[1:] > np.maximum.accumulate(margins)[:-1]])]
+    np.testing.assert_allclose(tried, [slack * 1e2, slack * 1e3, slack * 1e4, tol, 10 * tol, 100 * tol], rtol=1e-12)
     stays = jnp.array([0], jnp.int32)
-    start, tries = _warm_start(imdp, imdp.restrict(stays), imdp.initial_values(), jnp.array([1.0, 1.0, 0.0]), tol)
-    assert start is not None and tries == 4
-    assert float(start[0]) == 1.0 - tol
+    start, spent = _warm_start(imdp, imdp.restrict(stays), imdp.initial_values(), jnp.array([1.0, 1.0, 0.0]), tol)
+    if tries is None:
+        assert start is None and spent == len(tried)
+    else:
+        assert start is not None and spent == tries
+        assert float(start[0]) == pytest.approx(1.0 - needed * tol, rel=0, abs=1e-15)
 
 
 def test_certificate_rejects_every_start_above_the_least_fixed_point():
@@ -103,10 +115,10 @@ def test_synthesis_uses_the_warm_start_and_stays_below_the_cold_value(kind):
     tight = sj.verify(abstraction, np.asarray(warm.policy), tol=1e-13)
     assert np.all(lo_w <= np.asarray(tight.lower) + 2 * tight.rounding_allowance + 1e-15)
     assert np.max(np.abs(lo_w - lo_c)) < 1e-4
-    # Where no margin up to tol certifies the guess (here the IMDP, whose minimizing
+    # Where no margin certifies the guess (here the IMDP, whose minimizing
     # adversary keeps nearly all mass among states whose values no longer move), evaluation falls
     # back to the cold start, having spent only the checks.
-    assert warm.evaluation_iterations <= cold.evaluation_iterations + len(WARM_MARGINS) + 1
+    assert warm.evaluation_iterations <= cold.evaluation_iterations + len(WARM_MARGINS) + len(BEYOND_TOL) + 1
     if kind == "smdp":
         assert warm.evaluation_iterations < cold.evaluation_iterations / 2
     assert np.all(np.asarray(warm.lower_optimal) >= lo_w)
