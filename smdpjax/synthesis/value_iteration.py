@@ -190,10 +190,10 @@ def certified_start(abstraction, candidate, v0, slack, margin):
 # whose value has stopped changing gain under a backup only through the margin, scaled by their
 # probability of reaching a terminal state, so the largest margin is often the only one that
 # passes, and on slowly leaking rows even ``tol`` can fall short of the optimization's last
-# rounding (row 7 of Table 1: 26 of 767 rows by ~1e-11). A margin beyond ``tol`` costs at most
-# that much of the start's height, where the cold start it avoids stops when a backup changes
-# less than ``tol``, as far as ``tol / leak`` below the fixed point on exactly those rows (and
-# took 1746 LP backups on row 7).
+# rounding (row 3 of Table 1 in an earlier run: 26 of 767 rows by ~1e-11). A margin beyond
+# ``tol`` costs at most that much of the start's height, where the cold start it avoids stops
+# when a backup changes less than ``tol``, as far as ``tol / leak`` below the fixed point on
+# exactly those rows (and took 1746 LP backups on row 7 in that run).
 WARM_MARGINS = tuple(10.0 ** k for k in range(2, 13))
 BEYOND_TOL = (10.0, 100.0)
 
