@@ -142,10 +142,11 @@ class MIMDP(AbstractionMixin):
                 ``{"tol_gap_rel": 1e-7}``, or HiGHS option names).
             screen_actions: keep the SMDP of ``clusters`` (``screen``) so that greedy backups
                 solve LPs only for the actions that can still be the best (with several actions).
-            freeze_multipliers: let strategy sweeps and evaluations iterate with frozen
+            freeze_multipliers: let the optimization's strategy sweeps iterate with frozen
                 multipliers, refreshed by one LP per row now and then (``freeze``;
-                ``synthesis.value_iteration``), instead of solving every row's LP at every
-                backup. Sound either way; ``False`` reproduces the LP-per-backup iteration.
+                ``synthesis.value_iteration.optimize_lower``), instead of solving every row's
+                LP at every sweep. Sound either way; ``False`` reproduces the LP-per-sweep
+                iteration (the strategy's evaluation solves its LPs at every backup in both).
         """
         n_cells = grid.num_cells
         sentinel = n_cells + 1

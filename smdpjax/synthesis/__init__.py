@@ -70,8 +70,8 @@ def synthesize(abstraction, horizon: int | None = None, tol: float = 1e-6, *, ob
         policy_sweeps: backups of the current greedy strategy alone after each greedy backup
             of the optimization (modified policy iteration, see
             ``value_iteration.optimize_lower``); ``None``: the number of actions, or
-            ``value_iteration.FROZEN_SWEEPS`` for the MI-MDP, whose sweeps (and evaluations)
-            iterate frozen LP multipliers instead of solving LPs (``MIMDP.freeze``); ``0``: plain
+            ``value_iteration.FROZEN_SWEEPS`` for the MI-MDP, whose sweeps iterate frozen LP
+            multipliers instead of solving LPs (``MIMDP.freeze``); ``0``: plain
             value iteration. Sound for any value; only the speed and where the optimization
             stops within ``tol`` change.
         upper: ``False`` skips the optimistic bound (about half the work of a finite horizon)

@@ -47,9 +47,9 @@ def _replicated(v, rows):
 
 # A freezable class (the MI-MDP) sweeps with frozen multipliers, refrozen every SWEEPS_PER_FREEZE
 # sweeps (one LP per row each time), FROZEN_SWEEPS sweeps per greedy backup by default. On the 2-D
-# unicycle at 30x30 (8 actions, HiGHS) 32 sweeps refrozen every 8 took 41 s against 121 s for 8
-# sweeps with an LP per row each; 64 sweeps, or refreezing every 4 or 16, took 48-50 s
-# (benchmarks/mimdp_freeze.py compares with the unfrozen LPs).
+# unicycle at 30x30 (8 actions, HiGHS; one cold synthesis each) 32 sweeps refrozen every 8 took
+# 41 s; 64 sweeps, or refreezing every 4 or 16, 48-50 s. ``benchmarks/mimdp_freeze.py``: 32.6 s
+# against 86.2 s for 8 sweeps with an LP per row each (medians of 2 warm runs).
 FROZEN_SWEEPS = 32
 SWEEPS_PER_FREEZE = 8
 
