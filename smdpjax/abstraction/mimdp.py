@@ -263,15 +263,14 @@ class MIMDP(AbstractionMixin):
         an upper bound of the maximum. ``(R, A)``, or ``(R,)`` with ``actions: (R,)``."""
         minimize = check_adversary(adversary)
         imdp = self.relaxation
-        frozen = self.lp_index if self.frozen is None else self.frozen  # a placeholder when not frozen
         arrays = (imdp.successors, imdp.lower, imdp.upper, self.cluster_slots, self.cluster_lower,
-                  self.cluster_upper, self.lp_index, frozen)
+                  self.cluster_upper, self.lp_index) + (() if self.frozen is None else (self.frozen,))
         if actions is not None:
             arrays = tuple(jnp.take_along_axis(a, actions.reshape((-1, 1) + (1,) * (a.ndim - 2)), axis=1)[:, 0]
                            for a in arrays)
-        succ, lower, upper, slots, clo, cup, lp, frozen = arrays
+        succ, lower, upper, slots, clo, cup, lp, *frozen = arrays
         w = v if minimize else -v
-        lam = self.multipliers(w, lp, 0 if minimize else 1) if self.frozen is None else frozen
+        lam = frozen[0] if frozen else self.multipliers(w, lp, 0 if minimize else 1)
         value = _certified_min(w, succ, lower, upper, imdp.upper_rest, slots, clo, cup, lam, self.multiplier_cap)
         return value if minimize else -value
 
