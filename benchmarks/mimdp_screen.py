@@ -1,9 +1,11 @@
-"""MI-MDP synthesis with and without action screening (``MIMDP.screen``), side by side.
+"""MI-MDP synthesis with and without the SMDP screen (``MIMDP.screen``), side by side.
 
 Builds one Table 1 MI-MDP row's clusters once, then for each mode builds the MI-MDP (HiGHS
-multipliers) and runs ``synthesize`` once (cold: compilation included, as the table reports
-MI-MDP rows), printing T_syn, the backups, the LPs solved and skipped, and how far the bounds of
-the two modes are apart (they should agree to LP accuracy).
+multipliers) and solves the row once as Table 1 does (``synthesize``, or ``verify`` of the
+look-up table on the temperature rows; cold: compilation included, as the table reports MI-MDP
+rows), printing T_syn, the backups, the LPs solved and skipped, and how far the bounds of the two
+modes are apart (they should agree to LP accuracy). The screen skips the LPs of rows whose IMDP
+and SMDP values meet, and in greedy backups those of actions that cannot be the best.
 
     python -m benchmarks.mimdp_screen [--row 3] [--modes screen,plain] [--out results/mimdp_screen.json]
 """
@@ -35,7 +37,8 @@ def main(argv=None):
     if spec.kind != "mimdp":
         parser.error(f"row {args.row} is a {spec.kind} row, not an MI-MDP one")
     study = case_study(spec, False)
-    clusters = compute_grid_clusters(study.system, study.state_grid, study.noise_grid, method=study.reach_method)
+    clusters = compute_grid_clusters(study.system, study.state_grid, study.noise_grid, policy=study.controller,
+                                     method=study.reach_method)
     nonterminal = np.asarray(study.state_grid.nonterminal)
     runs, bounds = {}, {}
     print(f"{'mode':8} {'T_syn s':>8} {'backups':>8} {'eval':>6} {'LPs solved':>11} {'skipped':>9} {'e_avg':>10}")
@@ -44,7 +47,7 @@ def main(argv=None):
             parser.error(f"unknown mode {mode!r}")
         mimdp = build("mimdp", study.state_grid, clusters, lp_backend="highs", screen_actions=mode == "screen")
         start = time.perf_counter()
-        solution = sj.synthesize(mimdp, tol=args.tol)
+        solution = study.solve(mimdp, tol=args.tol)
         seconds = time.perf_counter() - start
         stats = mimdp.lps.stats
         solved = int(sum(v for k, v in stats.items() if k not in ("skipped", "calls") and isinstance(v, int)))

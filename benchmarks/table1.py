@@ -110,8 +110,10 @@ def run_row(row: int, args) -> dict:
     save(STAGES[1], t_reach_s=t_reach, t_reach_runs=runs, t_reach_warm=warm)
     options = {"lp_backend": args.lp_backend} if spec.kind == "mimdp" else {}
     abstraction, t_build, runs, warm = stage(lambda: build(spec.kind, study.state_grid, clusters, **options))
+    lps = getattr(abstraction, "lps", None)  # the MI-MDP's host LP data, outside the memory metric
     save(STAGES[2], t_build_s=t_build, t_build_runs=runs, t_build_warm=warm, t_abs_s=t_reach + t_build,
-         memory_bytes=abstraction.nbytes, abstraction=repr(abstraction))
+         memory_bytes=abstraction.nbytes, abstraction=repr(abstraction),
+         lp_data_bytes=None if lps is None else lps.data_nbytes)
     solution, t_syn, runs, warm = stage(lambda: study.solve(abstraction, tol=args.tol))
     lower, upper = np.asarray(solution.lower), np.asarray(solution.upper)
     cells = sj.metrics.initial_cells(study.state_grid, min(args.initial, study.state_grid.nonterminal.size), seed=0)

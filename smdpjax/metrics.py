@@ -25,7 +25,9 @@ def average_bounds(solution, cells) -> tuple[float, float]:
 
 
 def memory_bytes(abstraction) -> int:
-    """Bytes of the arrays that store the abstraction."""
+    """Bytes of the arrays that store the abstraction (its PyTree leaves). The MI-MDP's host-side
+    LP data (``abstraction.lps.data_nbytes``) and solver state are a solver's workspace and not
+    included."""
     return abstraction.nbytes
 
 

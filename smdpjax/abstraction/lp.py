@@ -431,6 +431,16 @@ class ClusterLPs:
                 self._executor = ThreadPoolExecutor(self.threads, thread_name_prefix="mimdp-lp")
             return self._executor
 
+    @property
+    def data_nbytes(self) -> int:
+        """Bytes of the LP data kept on the host (successor ids and per-LP capacities, cost
+        sources, cluster sides and members). Not in ``MIMDP.nbytes`` (the abstraction's storage,
+        the paper's metric): a re-encoding of the same abstraction for the solver, like its
+        models and warm-start bases, which come on top and are not counted here either."""
+        arrays = [self.succ, self.buckets, self.has_rest]
+        arrays += [a for lp in self._lps for a in lp.values() if isinstance(a, np.ndarray)]
+        return int(sum(a.nbytes for a in arrays))
+
     def __repr__(self):
         return (f"ClusterLPs({self.num_lps} LPs, backend={self.backend}, vars <= {int(self.num_vars.max(initial=0))}, "
                 f"cluster sides <= {int(self.num_cluster_rows.max(initial=0))}, threads={self.threads})")

@@ -361,6 +361,12 @@ def test_pytree_leaves_and_repr(small):
     assert "MIMDP(" in repr(mimdp) and mimdp.kind == "mimdp"
     fixed = mimdp.restrict(jnp.zeros(mimdp.num_rows, jnp.int32))
     assert fixed.lps is mimdp.lps and fixed.lp_index.shape == (mimdp.num_rows, 1)
+    # the host LP data: at least every LP's variable capacities (float64) and cluster members
+    # (int64), and the successor ids of every LP; not part of the abstraction's nbytes
+    lps = mimdp.lps
+    members = sum(lp["var"].size for lp in lps._lps)
+    assert lps.data_nbytes >= 8 * (int(lps.num_vars.sum()) + members) + lps.succ.nbytes
+    assert members > 0 and mimdp.nbytes == sum(np.asarray(x).nbytes for x in leaves)
 
 
 @pytest.mark.parametrize("chunk", [1, 5])
@@ -466,6 +472,54 @@ def test_screening_does_not_change_synthesis(unicycle_12):
     np.testing.assert_allclose(np.asarray(a.lower), np.asarray(b.lower), rtol=0, atol=1e-7)
     np.testing.assert_allclose(np.asarray(a.lower_optimal), np.asarray(b.lower_optimal), rtol=0, atol=1e-7)
     np.testing.assert_allclose(np.asarray(a.upper), np.asarray(b.upper), rtol=0, atol=1e-7)
+
+
+@pytest.mark.parametrize("adversary", ["min", "max"])
+def test_q_values_skip_the_lps_of_rows_the_screen_pins(small_clusters, adversary):
+    """Where the IMDP's and the SMDP's values meet, the MI-MDP's lies between them: ``q_values``
+    returns the IMDP value there without an LP, in every backup (with or without ``actions``, and
+    after ``restrict``), and equals the LP-per-row values of an unscreened MI-MDP elsewhere."""
+    grid, clusters, _ = small_clusters
+    screened = MIMDP.from_clusters(grid, clusters)
+    plain = MIMDP.from_clusters(grid, clusters, screen_actions=False)
+    rng = np.random.default_rng(11)
+    actions = jnp.asarray(rng.integers(0, screened.num_actions, screened.rows.size), jnp.int32)
+    with_actions = jax.jit(lambda m, x: m.q_values(x, adversary, actions))
+    pinned_somewhere = False
+    for v in (np.asarray(screened.initial_values()), rng.uniform(0, 1, screened.num_states)):
+        v = jnp.asarray(v).at[-1].set(0.0)
+        imdp = q_values(screened.relaxation, v, adversary)
+        before = screened.lps.stats["skipped"]
+        fast = q_values(screened, v, adversary)
+        skipped = screened.lps.stats["skipped"] - before
+        np.testing.assert_allclose(fast, q_values(plain, v, adversary), rtol=0, atol=1e-9)
+        smdp = q_values(screened.screen, v, adversary)
+        pins = np.abs(smdp - imdp) <= 1e-12
+        assert skipped >= pins.sum()  # at least every row whose bounds meet is solved without an LP
+        np.testing.assert_array_equal(fast[pins], imdp[pins])
+        pinned_somewhere |= bool(pins.any() and not pins.all())
+        for one_action in (screened.restrict(actions), plain.restrict(actions)):
+            np.testing.assert_allclose(q_values(one_action, v, adversary)[:, 0], fast[np.arange(actions.size), actions],
+                                       rtol=0, atol=1e-9)
+        np.testing.assert_allclose(np.asarray(with_actions(screened, v)), fast[np.arange(actions.size), actions],
+                                   rtol=0, atol=1e-9)
+    assert pinned_somewhere  # the check bites: some rows need their LP, some do not
+
+
+def test_single_action_verification_keeps_its_screen(small_clusters):
+    """A single-action MI-MDP (a verified look-up table) has a screen too, and its finite-horizon
+    bounds equal those of one that solves every row's LP."""
+    grid, clusters, _ = small_clusters
+    table = np.arange(grid.num_cells) % 4
+    system = sj.System(unicycle, actions=(np.arange(4) * np.pi / 2)[:, None], noise=sj.Gaussian([0.0, 0.0], [0.3, 0.3]))
+    one = compute_grid_clusters(system, grid, sj.NoiseGrid.ball([0.0, 0.0], 0.9, 3), policy=table)
+    screened = MIMDP.from_clusters(grid, one)
+    plain = MIMDP.from_clusters(grid, one, screen_actions=False)
+    assert screened.num_actions == 1 and screened.screen is not None and plain.screen is None
+    a, b = sj.verify(screened, horizon=6), sj.verify(plain, horizon=6)
+    assert screened.lps.stats["skipped"] > 0 and plain.lps.stats["skipped"] == 0
+    np.testing.assert_allclose(np.asarray(a.lower), np.asarray(b.lower), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(a.upper), np.asarray(b.upper), rtol=0, atol=1e-9)
 
 
 # -- frozen multipliers ----------------------------------------------------------------------
