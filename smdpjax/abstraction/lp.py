@@ -47,10 +47,15 @@ import numpy as np
 _REDUNDANT_SLACK = 1e-12
 # Unlisted states whose total capacity is below this are priced by one aggregated variable.
 _NEGLIGIBLE_MASS = 1e-6
-# LPs whose cluster data are prepared together (bounds the (LPs x clusters x members) temporaries).
+# LPs whose cluster data are prepared together: at most this many, and at most
+# _BLOCK_ENTRIES (LP, cluster, member) entries, which bounds the float64 temporaries (~130 MB each;
+# 4096 LPs at once peaked at 12 GB on the 4-room temperature row, 256 clusters x 81 members).
 _LPS_PER_BLOCK = 4096
+_BLOCK_ENTRIES = 1 << 24
 # Locks shared by the LPs (LP p uses lock p % stripes): few, so that they cost nothing to keep
 _LP_LOCK_STRIPES = 64
+# ``Highs.passModel`` codes: row-wise matrix (``MatrixFormat.kRowwise``), ``ObjSense.kMinimize``
+_HIGHS_ROWWISE, _HIGHS_MINIMIZE = 2, 1
 BACKENDS = ("clarabel", "highs")
 
 
@@ -99,14 +104,14 @@ class ClusterLPs:
         self.settings = {**defaults, **(settings or {})}
         self._cache_size = int(cache_size)
         self._plans: collections.OrderedDict = collections.OrderedDict()
-        self._solvers: dict = {}  # Clarabel solvers, HighsLp models and HiGHS bases, by key
+        self._solvers: dict = {}  # Clarabel solvers and HiGHS bases, by key
         self._cached_solvers = 0
         self.max_cached_solvers = int(max_cached_solvers)
         self._local = threading.local()
         self._lock = threading.Lock()
         # XLA may run host callbacks concurrently (a step's lower and upper backups, a mesh's
-        # shards), so two calls can reach the same LP at once: its HighsLp (whose costs are set
-        # in place) and Clarabel solver are used under a lock
+        # shards), so two calls can reach the same LP at once: its HiGHS basis (read, then
+        # replaced) and its Clarabel solver are used under a lock
         self._lp_locks = tuple(threading.Lock() for _ in range(_LP_LOCK_STRIPES))
         self._executor = None
         self.stats = collections.Counter()
@@ -138,8 +143,9 @@ class ClusterLPs:
         self._lps = []
         # Cluster sides, vectorized over (LP, cluster, member) a block of LPs at a time (all at once
         # is several (LPs x clusters x members) float64 temporaries: ~9 GB each at 224k LPs).
-        for first in range(0, self.num_lps, _LPS_PER_BLOCK):
-            block = slice(first, min(first + _LPS_PER_BLOCK, self.num_lps))
+        per_block = max(1, min(_LPS_PER_BLOCK, _BLOCK_ENTRIES // max(1, slots.shape[1] * slots.shape[2])))
+        for first in range(0, self.num_lps, per_block):
+            block = slice(first, min(first + per_block, self.num_lps))
             self._build_block(block, slots[block], clo[block], cup[block], lower[block], cap[block], free_mass[block],
                               is_var[block], var_of_slot[block], buckets[block], has_rest[block], n_unlisted[block])
         self.num_vars = np.array([lp["caps"].size for lp in self._lps])
@@ -175,9 +181,12 @@ class ClusterLPs:
             rows = np.flatnonzero(use_lo[p] | use_hi[p])
             members = member_var[p][rows]
             keep = members >= 0
+            # member variable ids are the bulk (up to clusters x members per LP): the narrowest
+            # integer type that holds them
             self._lps.append(dict(
-                caps=caps, cost_src=cost_src.astype(np.int64), free_mass=float(free_mass[p]), cluster=rows,
-                ptr=np.concatenate([[0], np.cumsum(keep.sum(1))]), var=members[keep].astype(np.int64),
+                caps=caps, cost_src=cost_src.astype(np.int32), free_mass=float(free_mass[p]),
+                cluster=rows.astype(np.int32), ptr=np.concatenate([[0], np.cumsum(keep.sum(1))]).astype(np.int32),
+                var=members[keep].astype(np.int16 if caps.size <= np.iinfo(np.int16).max else np.int32),
                 lo=row_lo[p][rows], hi=row_hi[p][rows]))
 
     def _conic(self, p):
@@ -240,22 +249,20 @@ class ClusterLPs:
         return dict(solver=solver, lock=threading.Lock(), count=len(part), cost_pos=cost_pos, cost_col=cost_col,
                     z_rows=z_rows, z_pos=z_pos, z_target=z_target)
 
-    def _highs_lp(self, p):
-        """LP ``p`` as a ``HighsLp``: bounds on the variables, ranged rows (equality first)."""
-        highspy = _import("highs")
+    def _highs_model(self, p, cost):
+        """LP ``p`` with costs ``cost`` as the arrays of ``Highs.passModel``: bounds on the
+        variables, ranged rows (equality first), a row-wise 0/1 matrix. Assembled at every call
+        from the compact per-LP data: a cached ``HighsLp`` per LP held ~200 KB each on the
+        4-room temperature row (20 736 LPs of up to 256 clusters x 81 members: 4 GB), and setting
+        its fields converted the arrays element by element (1.7 ms per LP)."""
         lp_data = self._lps[p]
         n, k = lp_data["caps"].size, lp_data["cluster"].size
-        lp = highspy.HighsLp()
-        lp.num_col_, lp.num_row_ = n, 1 + k
-        lp.col_cost_ = np.zeros(n)
-        lp.col_lower_, lp.col_upper_ = np.zeros(n), lp_data["caps"]
-        lp.row_lower_ = np.concatenate([[lp_data["free_mass"]], lp_data["lo"]])
-        lp.row_upper_ = np.concatenate([[lp_data["free_mass"]], lp_data["hi"]])
-        lp.a_matrix_.format_ = highspy.MatrixFormat.kRowwise
-        lp.a_matrix_.start_ = np.concatenate([[0], n + lp_data["ptr"]]).astype(np.int32)
-        lp.a_matrix_.index_ = np.concatenate([np.arange(n), lp_data["var"]]).astype(np.int32)
-        lp.a_matrix_.value_ = np.ones(n + lp_data["var"].size)
-        return lp
+        index = np.concatenate([np.arange(n, dtype=np.int32), lp_data["var"].astype(np.int32)])
+        start = np.concatenate([[0], n + lp_data["ptr"]]).astype(np.int32)
+        bounds = lambda side: np.concatenate([[lp_data["free_mass"]], lp_data[side]])
+        return (n, 1 + k, index.size, _HIGHS_ROWWISE, _HIGHS_MINIMIZE, 0.0, np.ascontiguousarray(cost, np.float64),
+                np.zeros(n), lp_data["caps"], bounds("lo"), bounds("hi"), start, index, np.ones(index.size),
+                np.zeros(n, np.int32))  # integrality: all continuous (an empty array is read past its end)
 
     def _highs_solver(self):
         """The calling thread's ``Highs`` instance (one model at a time; bases are kept per LP)."""
@@ -270,12 +277,11 @@ class ClusterLPs:
         return h
 
     def _solve_highs(self, p, direction, cost, out):
-        lp = self._cached(("lp", int(p)), lambda: self._highs_lp(p))
+        model = self._highs_model(p, cost)
         h = self._highs_solver()
         key = ("basis", direction, int(p))
-        with self._lp_locks[int(p) % _LP_LOCK_STRIPES]:
-            lp.col_cost_ = cost
-            h.passModel(lp)
+        with self._lp_locks[int(p) % _LP_LOCK_STRIPES]:  # the basis of an LP is read and replaced
+            h.passModel(*model)
             basis = self._solvers.get(key)
             if basis is not None:
                 h.setBasis(basis)

@@ -179,6 +179,10 @@ class MIMDP(AbstractionMixin):
                                        upper=jnp.asarray(upper))
         # Member lists are expanded a chunk of rows at a time: all of them at once is R x A x C_b x K
         # ids (1.1e9 on the 3-D unicycle at |C| = 65, more than 24 GB with the temporaries).
+        k = succ.shape[-1]
+        # narrowed per chunk: as int64 the padded pieces and their concatenation peaked at 12 GB
+        # on the 4-room temperature row (20 736 rows x 256 clusters x 81 members)
+        slot_type = np.int16 if k < np.iinfo(np.int16).max else np.int32
         pieces = []
         for start in range(0, num_rows, _MEMBER_ROWS_PER_CHUNK):
             stop = min(start + _MEMBER_ROWS_PER_CHUNK, num_rows)
@@ -193,10 +197,9 @@ class MIMDP(AbstractionMixin):
                 ids = np.concatenate([pad(members), pad(extra[start:stop])], axis=2)
                 b_lo, b_up = np.concatenate([b_lo, ex_lo], axis=2), np.concatenate([b_up, ex_up], axis=2)
             slots = _slots_of(succ[start:stop], ids, sentinel)
-            pieces.append(_distinct_clusters(slots, b_lo, b_up, succ.shape[-1]))
-        slots, clo, cup = _concat_padded(pieces, succ.shape[-1])
-        k = succ.shape[-1]
-        slots = slots.astype(np.int16 if k < np.iinfo(np.int16).max else np.int32)
+            slots, b_lo, b_up = _distinct_clusters(slots, b_lo, b_up, k)
+            pieces.append((slots.astype(slot_type), b_lo, b_up))
+        slots, clo, cup = _concat_padded(pieces, k)
         flat = lambda a: a.reshape(num_rows * num_actions, *a.shape[2:])
         lps = ClusterLPs(flat(succ), flat(lower), flat(upper), rest, flat(slots), flat(clo), flat(cup),
                          grid.num_states, backend=lp_backend, block_size=block_size, max_buckets=max_buckets,
