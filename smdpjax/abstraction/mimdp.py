@@ -64,6 +64,9 @@ from .lp import ClusterLPs
 from .smdp import SMDP
 
 _BOUND_ROWS_PER_CHUNK = 64
+# (row, cluster, member) terms of the weak-duality bound materialized at once (``certified_min``):
+# ~270 MB of float64 and half that per int32 temporary
+_MEMBER_TERMS_PER_CHUNK = 1 << 25
 _MEMBER_ROWS_PER_CHUNK = 1024
 # Real-number bisection steps that narrow the threshold bracket of ``interval_min_rows``.
 _REAL_BISECTIONS = 20
@@ -349,7 +352,7 @@ class MIMDP(AbstractionMixin):
 
 # -- the certified inner value ------------------------------------------------------------------
 def certified_min(w, succ, lower, upper, upper_rest, slots, cluster_lower, cluster_upper, lam, cap=np.inf, *,
-                  imdp_value=None):
+                  imdp_value=None, rows_per_chunk: int | None = None):
     """The weak-duality bound ``g(lambda)`` of the module docstring, for every row.
 
     Args:
@@ -361,19 +364,49 @@ def certified_min(w, succ, lower, upper, upper_rest, slots, cluster_lower, clust
         lam: ``(..., J, 2)`` multipliers (lambda+, lambda-); clipped to ``[0, cap]``.
         imdp_value: ``(...)`` the interval problem's value ``g(0)`` if the caller has it already
             (computed here otherwise).
+        rows_per_chunk: rows whose ``(J, L)`` member terms are materialized at once (``None``:
+            as many as keep them under ``_MEMBER_TERMS_PER_CHUNK``). One chunk at a time
+            bounds the temporaries: all 20 736 rows of the 4-room temperature row at once
+            (256 clusters x 81 members) held ~7 GB per backup direction.
     Returns:
         ``(...)`` lower bounds of ``min <gamma, w>`` over the MI-MDP polytope: the larger of
         ``g(lambda)`` and ``g(0)`` (the IMDP value), both valid.
     """
+    batch, k = succ.shape[:-1], succ.shape[-1]
+    rows = int(np.prod(batch)) if batch else 1
+    flat = lambda a, tail: a.reshape(rows, *a.shape[a.ndim - tail:])
+    arrays = (flat(succ, 1), flat(lower, 1), flat(upper, 1), flat(slots, 2), flat(cluster_lower, 1),
+              flat(cluster_upper, 1), flat(lam, 2))
+    if imdp_value is not None:
+        arrays += (jnp.reshape(imdp_value, (rows,)),)
+    kernel = lambda *part: _certified_min_rows(w, upper_rest, *part, cap=cap)
+    terms = max(1, int(np.prod(slots.shape[-2:])))
+    chunk = rows_per_chunk or max(1, _MEMBER_TERMS_PER_CHUNK // terms)
+    if chunk >= rows:
+        return kernel(*arrays).reshape(batch)
+
+    # equal chunks; the last one starts at rows - chunk, overlapping its predecessor (those
+    # rows are computed twice, to the same values)
+    def body(i, out):
+        start = jnp.minimum(i * chunk, rows - chunk)
+        part = [jax.lax.dynamic_slice_in_dim(a, start, chunk) for a in arrays]
+        return jax.lax.dynamic_update_slice_in_dim(out, kernel(*part), start, 0)
+
+    out = jax.lax.fori_loop(0, -(-rows // chunk), body, jnp.zeros(rows, w.dtype))
+    return out.reshape(batch)
+
+
+def _certified_min_rows(w, upper_rest, succ, lower, upper, slots, cluster_lower, cluster_upper, lam,
+                        imdp_value=None, *, cap):
+    """``certified_min`` of ``(rows, ...)`` arrays, all rows at once."""
     lam = jnp.clip(lam, 0.0, cap)
     lam_plus, lam_minus = lam[..., 0], lam[..., 1]
     mu = lam_plus - lam_minus
-    batch, k = succ.shape[:-1], succ.shape[-1]
-    rows = int(np.prod(batch)) if batch else 1
+    rows, k = succ.shape
     flat_slots = slots.reshape(rows, -1).astype(jnp.int32)
     flat_index = jnp.where(flat_slots < k, jnp.arange(rows)[:, None] * k + flat_slots, rows * k)
     per_member = jnp.broadcast_to(mu[..., None], slots.shape).reshape(rows, -1)
-    shift = jnp.zeros(rows * k, w.dtype).at[flat_index].add(per_member, mode="drop").reshape(*batch, k)
+    shift = jnp.zeros(rows * k, w.dtype).at[flat_index].add(per_member, mode="drop").reshape(rows, k)
     listed = succ < w.shape[0]
     w_listed = jnp.where(listed, w.at[succ].get(mode="fill", fill_value=0.0) - shift, 0.0)
     offset = jnp.sum(lam_plus * cluster_lower - lam_minus * cluster_upper, axis=-1)
@@ -384,7 +417,7 @@ def certified_min(w, succ, lower, upper, upper_rest, slots, cluster_lower, clust
     return jnp.maximum(bound, imdp_value)
 
 
-_certified_min = jax.jit(certified_min, static_argnums=9)  # one compilation per shape, also eagerly
+_certified_min = jax.jit(certified_min, static_argnums=9, static_argnames="rows_per_chunk")  # one compilation per shape
 
 
 def interval_min_rows(w, w_listed, succ, lower, upper, upper_rest):

@@ -243,6 +243,29 @@ def test_certificate_is_sound_for_any_multipliers(small):
         assert np.all(g <= exact + 1e-9)
 
 
+@pytest.mark.parametrize("chunk", [1, 7, 1000])
+def test_certified_min_in_row_chunks_equals_all_rows_at_once(small, chunk):
+    """Row chunks (bounding the (row, cluster, member) temporaries) change nothing: 7 does not
+    divide the 124 (row, action) pairs, so the last chunk overlaps its predecessor."""
+    grid, _, mimdp, _ = small
+    from smdpjax.abstraction.mimdp import certified_min
+    imdp = mimdp.relaxation
+    assert mimdp.lp_index.size % 7 != 0
+    rng = np.random.default_rng(6)
+    v = jnp.asarray(rng.uniform(0, 1, grid.num_states))
+    lam = mimdp.multipliers(v, mimdp.lp_index)  # the LPs' own, which lift some rows above the IMDP
+    args = (v, imdp.successors, imdp.lower, imdp.upper, imdp.upper_rest, mimdp.cluster_slots, mimdp.cluster_lower,
+            mimdp.cluster_upper, lam, 10.0)
+    bound = jax.jit(certified_min, static_argnums=9, static_argnames="rows_per_chunk")
+    whole = np.asarray(bound(*args))
+    assert whole.shape == mimdp.lp_index.shape
+    np.testing.assert_array_equal(np.asarray(bound(*args, rows_per_chunk=chunk)), whole)
+    given = jnp.asarray(q_values(imdp, v, "min"))
+    np.testing.assert_array_equal(np.asarray(bound(*args, imdp_value=given, rows_per_chunk=chunk)),
+                                  np.asarray(bound(*args, imdp_value=given)))
+    assert np.any(whole > np.asarray(given) + 1e-6)  # the multipliers do lift some rows
+
+
 # -- bounds of the clusters ------------------------------------------------------------------
 @pytest.mark.parametrize("case", ["small", "bounded"])
 def test_cluster_bounds_brute_force(case, request):
