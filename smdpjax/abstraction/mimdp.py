@@ -367,7 +367,8 @@ def certified_min(w, succ, lower, upper, upper_rest, slots, cluster_lower, clust
         rows_per_chunk: rows whose ``(J, L)`` member terms are materialized at once (``None``:
             as many as keep them under ``_MEMBER_TERMS_PER_CHUNK``). One chunk at a time
             bounds the temporaries: all 20 736 rows of the 4-room temperature row at once
-            (256 clusters x 81 members) held ~7 GB per backup direction.
+            (256 clusters x 81 members) are three arrays of 430M terms, ~7 GB per backup
+            direction.
     Returns:
         ``(...)`` lower bounds of ``min <gamma, w>`` over the MI-MDP polytope: the larger of
         ``g(lambda)`` and ``g(0)`` (the IMDP value), both valid.
