@@ -281,7 +281,9 @@ class ClusterLPs:
         h = self._highs_solver()
         key = ("basis", direction, int(p))
         with self._lp_locks[int(p) % _LP_LOCK_STRIPES]:  # the basis of an LP is read and replaced
-            h.passModel(*model)
+            status = h.passModel(*model)  # None from highspy versions that raise instead
+            if status is not None and status == _import("highs").HighsStatus.kError:
+                raise RuntimeError(f"HiGHS refused the LP of row {int(p)} ({status})")
             basis = self._solvers.get(key)
             if basis is not None:
                 h.setBasis(basis)

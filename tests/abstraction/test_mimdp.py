@@ -432,6 +432,18 @@ def test_lp_blocks_do_not_change_the_lps(small_clusters, monkeypatch):
     assert whole.nnz == blocked.nnz
 
 
+def test_a_model_highs_refuses_raises_instead_of_solving_the_previous_one(small_highs, monkeypatch):
+    """``Highs.passModel`` reports a refused model by its status and keeps the model before it;
+    solving on would read that model's duals. An integrality code that does not exist is refused."""
+    lps = small_highs[2].lps
+    build = lps._highs_model
+    illegal = lambda model: model[:-1] + (np.full(model[0], 99, np.int32),)
+    monkeypatch.setattr(lps, "_highs_model", lambda p, cost: illegal(build(p, cost)))
+    w = np.linspace(0.0, 1.0, lps.num_states)
+    with pytest.raises(RuntimeError, match="HiGHS refused the LP"):
+        lps.multipliers(w, np.array([0]))
+
+
 @pytest.mark.parametrize("threads", [1, 2])
 @pytest.mark.parametrize("case", ["small", "small_highs"])
 def test_concurrent_multiplier_calls_are_safe(case, threads, request, monkeypatch):
