@@ -384,11 +384,12 @@ def test_pytree_leaves_and_repr(small):
     assert "MIMDP(" in repr(mimdp) and mimdp.kind == "mimdp"
     fixed = mimdp.restrict(jnp.zeros(mimdp.num_rows, jnp.int32))
     assert fixed.lps is mimdp.lps and fixed.lp_index.shape == (mimdp.num_rows, 1)
-    # the host LP data: at least every LP's variable capacities (float64) and cluster members
-    # (int64), and the successor ids of every LP; not part of the abstraction's nbytes
+    # the host LP data: at least every LP's variable capacities (float64), cluster members (int16
+    # here: few variables per LP) and successor ids; not part of the abstraction's nbytes
     lps = mimdp.lps
     members = sum(lp["var"].size for lp in lps._lps)
-    assert lps.data_nbytes >= 8 * (int(lps.num_vars.sum()) + members) + lps.succ.nbytes
+    assert all(lp["var"].dtype == np.int16 for lp in lps._lps)
+    assert lps.data_nbytes >= 8 * int(lps.num_vars.sum()) + 2 * members + lps.succ.nbytes
     assert members > 0 and mimdp.nbytes == sum(np.asarray(x).nbytes for x in leaves)
 
 
