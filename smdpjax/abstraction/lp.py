@@ -27,9 +27,9 @@ objective. Backends:
   block-diagonally into one problem (``block_size``; no gain measured, see
   ``benchmarks/mimdp_lp.py``). Variable bounds become rows of the nonnegative cone.
 * ``"highs"`` (needs ``highspy``): simplex with native variable bounds and ranged rows. Each LP
-  keeps its model and its last optimal basis (one per adversary direction), and every call warm
-  starts from that basis, which is nearly optimal again when the values change little between
-  iterations. One ``Highs`` instance per thread solves the LPs one after the other (a ``Highs``
+  keeps its last optimal basis (one per adversary direction; its model is passed again as arrays
+  at every call, see ``_highs_model``), and every call warm starts from that basis, which is
+  nearly optimal again when the values change little between iterations. One ``Highs`` instance per thread solves the LPs one after the other (a ``Highs``
   object per LP would hold ~0.5 MB each).
 
 Both release the GIL while solving; ``threads > 1`` solves LPs concurrently.
