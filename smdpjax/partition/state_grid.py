@@ -7,15 +7,24 @@ Flat cell indices are C order over ``cells``; index ``num_cells`` is the sink st
 * ``AVOID``: the cell overlaps an avoid box in a set of positive volume (absorbing, value 0);
 * ``NONTERMINAL``: every other cell (S_nt in the paper).
 
-Cells are closed boxes. A cell that only shares a face with an avoid box is not an avoid cell
-(the face has probability zero under any noise with a density); floating-point noise in the
-comparison of edges (0.4 vs 12/30) is absorbed by a tolerance of a few ulps.
+Cells are half-open boxes: along dimension i, cell k is ``[e_k, e_{k+1})`` with the faces
+``e = edges[i]`` held as explicit float64 arrays (``e_k`` is the float nearest to
+``low + k (high - low) / cells``), except that the last cell is closed at ``high`` (periodic
+dimensions: ``high`` is ``low`` again, in cell 0). So the cells partition the grid box exactly and
+"a point lies on a face" is decided by exact comparison with ``edges``.
+
+Regions: reach boxes are closed, avoid boxes are open (their faces are safe), the grid box is
+closed. A cell is a reach cell iff its closure lies inside a reach box, an avoid cell iff it meets
+the interior of an avoid box; both tests are exact comparisons with the edges, so a grid-aligned
+region written as decimal literals (0.4 on a grid of 30 cells over [0, 1]) labels exactly the
+cells it covers.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
+from fractions import Fraction
 
 import jax.numpy as jnp
 import numpy as np
@@ -44,6 +53,17 @@ def _as_boxes(boxes, n: int, what: str) -> tuple[np.ndarray, np.ndarray]:
     return (np.array(lows).reshape(shape), np.array(highs).reshape(shape))
 
 
+def _edges(low: float, high: float, cells: int, dim: int) -> np.ndarray:
+    """``(cells + 1,)`` faces: the float nearest to ``low + k (high - low) / cells`` (exact
+    rationals, so ``edges[0] = low``, ``edges[-1] = high`` and grid-aligned decimals match)."""
+    a, span = Fraction(low), Fraction(high) - Fraction(low)
+    e = np.array([float(a + span * k / cells) for k in range(cells + 1)])
+    if not np.all(np.diff(e) > 0):
+        raise ValueError(f"StateGrid: {cells} cells over [{low}, {high}] in dimension {dim} are narrower than "
+                         f"float64 can separate; use fewer cells")
+    return e
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class StateGrid:
     """Uniform grid over the safe box ``[low, high]`` with reach and avoid boxes.
@@ -66,6 +86,7 @@ class StateGrid:
     avoid_boxes: tuple[np.ndarray, np.ndarray]
     periodic: np.ndarray
     labels: np.ndarray
+    edges: tuple
 
     def __init__(self, low, high, cells, reach: Sequence = (), avoid: Sequence = (), periodic=None):
         low = as_vector(low, "StateGrid low")
@@ -78,15 +99,15 @@ class StateGrid:
             raise ValueError(f"periodic must have length {n}, got {periodic.shape}")
         reach_boxes = _as_boxes(reach, n, "reach")
         avoid_boxes = _as_boxes(avoid, n, "avoid")
-        tol = 16 * np.finfo(np.float64).eps * np.maximum(np.abs(low), np.abs(high)).max()
+        edges = tuple(_edges(float(a), float(b), int(k), i) for i, (a, b, k) in enumerate(zip(low, high, cells)))
         r_lo, r_hi = reach_boxes
-        outside = np.any((r_lo < low - tol) | (r_hi > high + tol), axis=1)
+        outside = np.any((r_lo < low) | (r_hi > high), axis=1)
         if np.any(outside):
             i = int(np.flatnonzero(outside)[0])
             raise ValueError(f"reach box {i} ({r_lo[i].tolist()}, {r_hi[i].tolist()}) is not inside the safe "
                              f"grid box ({low.tolist()}, {high.tolist()}): X_reach must be a subset of X_safe")
         a_lo, a_hi = avoid_boxes
-        overlap = np.all((r_lo[:, None] < a_hi[None] - tol) & (r_hi[:, None] > a_lo[None] + tol), axis=2)
+        overlap = np.all((r_lo[:, None] < a_hi[None]) & (r_hi[:, None] > a_lo[None]), axis=2)
         if np.any(overlap):
             i, j = map(int, np.argwhere(overlap)[0])
             raise ValueError(f"reach box {i} overlaps avoid box {j}: X_reach must be a subset of X_safe")
@@ -96,7 +117,8 @@ class StateGrid:
         object.__setattr__(self, "reach_boxes", reach_boxes)
         object.__setattr__(self, "avoid_boxes", avoid_boxes)
         object.__setattr__(self, "periodic", periodic)
-        object.__setattr__(self, "labels", self._compute_labels(tol))
+        object.__setattr__(self, "edges", edges)
+        object.__setattr__(self, "labels", self._compute_labels())
 
     # -- geometry ---------------------------------------------------------------------------
     @property
@@ -119,38 +141,62 @@ class StateGrid:
 
     @property
     def width(self) -> np.ndarray:
-        """``(n,)`` cell widths."""
+        """``(n,)`` nominal cell widths ``(high - low) / cells`` (the faces are ``edges``)."""
         return (self.high - self.low) / self.cells
 
     def cell_bounds(self, index):
-        """Boxes of flat cell indices ``index: (...)``: returns ``(low, high)``, each ``(..., n)``.
+        """Boxes of flat cell indices ``index: (...)``: returns ``(low, high)``, each ``(..., n)``,
+        the faces ``edges`` of the half-open cells (``high`` excluded except on the last cell of a
+        non-periodic dimension).
 
         NumPy arrays for concrete (NumPy / Python) indices, JAX arrays for JAX ones (traced
-        included); both evaluate the same IEEE operations, so the boxes are identical."""
+        included), with identical values."""
+        xp = np if isinstance(index, (np.ndarray, np.integer, int, list, tuple)) else jnp
+        multi = xp.unravel_index(xp.asarray(index), tuple(self.cells.tolist()))
+        lo = xp.stack([xp.asarray(e)[m] for e, m in zip(self.edges, multi)], axis=-1)
+        hi = xp.stack([xp.asarray(e)[m + 1] for e, m in zip(self.edges, multi)], axis=-1)
+        return lo, hi
+
+    def upper_attained(self, index):
+        """``(..., n)`` bool: the cell's upper face belongs to it (last cell of a non-periodic
+        dimension), so ``cell_bounds(index)[1]`` is a maximum rather than a supremum."""
         xp = np if isinstance(index, (np.ndarray, np.integer, int, list, tuple)) else jnp
         multi = xp.stack(xp.unravel_index(xp.asarray(index), tuple(self.cells.tolist())), axis=-1)
-        lo = self.low + multi * self.width
-        hi = xp.where(multi + 1 == self.cells, self.high, self.low + (multi + 1) * self.width)
-        return lo, hi
+        return (multi + 1 == self.cells) & ~self.periodic
+
+    def dimension_index(self, x, d: int):
+        """Cell index along dimension ``d`` of coordinates ``x: (...)`` already wrapped and inside
+        ``[low[d], high[d]]``: the k with ``edges[d][k] <= x < edges[d][k + 1]`` (k = cells - 1 at
+        ``high``). Exact: an estimate from the nominal width, corrected by comparison with the
+        edges (the estimate is off by at most one cell)."""
+        e = jnp.asarray(self.edges[d])
+        last = int(self.cells[d]) - 1
+        guess = jnp.clip(jnp.floor((x - self.low[d]) / self.width[d]), 0, last).astype(jnp.int32)
+        guess = guess - (x < e[guess]).astype(jnp.int32)
+        guess = guess + (x >= e[jnp.minimum(guess + 1, last + 1)]).astype(jnp.int32)
+        return jnp.clip(guess, 0, last)
 
     def wrap(self, x):
         """Points ``(..., n)`` with periodic coordinates brought into ``[low, high)``."""
         x = jnp.asarray(x)
         period = self.high - self.low
         wrapped = self.low + jnp.mod(x - self.low, period)
+        wrapped = jnp.where(wrapped >= self.high, self.low, wrapped)  # rounded up to high: that is low
         return jnp.where(self.periodic, wrapped, x)
 
     def locate(self, x):
         """Flat cell index of each point ``x: (..., n)``, -1 outside the grid box (or NaN).
 
-        Returns ``(...)`` int32. A point on a face shared by two cells gets one of them; a point on
-        the outer boundary belongs to the grid.
+        Returns ``(...)`` int32. A point on a face shared by two cells belongs to the upper one
+        (half-open cells); a point on the grid box's upper boundary to the last cell.
         """
+        x = jnp.asarray(x)
+        if x.ndim == 0 or x.shape[-1] != self.n:
+            raise ValueError(f"locate: points must have shape (..., {self.n}), got {x.shape}")
         x = self.wrap(x)
         inside = jnp.all((x >= self.low) & (x <= self.high), axis=-1)
-        multi = jnp.floor((x - self.low) / self.width).astype(jnp.int32)
-        multi = jnp.clip(multi, 0, jnp.asarray(self.cells - 1, jnp.int32))
-        flat = jnp.ravel_multi_index(tuple(jnp.moveaxis(multi, -1, 0)), tuple(self.cells.tolist()), mode="clip")
+        multi = [self.dimension_index(x[..., d], d) for d in range(self.n)]
+        flat = jnp.ravel_multi_index(tuple(multi), tuple(self.cells.tolist()), mode="clip")
         return jnp.where(inside, flat, -1).astype(jnp.int32)
 
     def cell_centers(self, index=None):
@@ -160,14 +206,14 @@ class StateGrid:
         return (lo + hi) / 2
 
     # -- specification ----------------------------------------------------------------------
-    def _compute_labels(self, tol: float) -> np.ndarray:
+    def _compute_labels(self) -> np.ndarray:
         lo, hi = (np.asarray(b) for b in self.cell_bounds(np.arange(self.num_cells)))
         labels = np.full(self.num_cells, NONTERMINAL, np.int8)
         r_lo, r_hi = self.reach_boxes
-        inside_reach = np.all((lo[:, None] >= r_lo[None] - tol) & (hi[:, None] <= r_hi[None] + tol), axis=2)
+        inside_reach = np.all((lo[:, None] >= r_lo[None]) & (hi[:, None] <= r_hi[None]), axis=2)
         labels[np.any(inside_reach, axis=1)] = REACH
         a_lo, a_hi = self.avoid_boxes
-        meets_avoid = np.all((lo[:, None] < a_hi[None] - tol) & (hi[:, None] > a_lo[None] + tol), axis=2)
+        meets_avoid = np.all((lo[:, None] < a_hi[None]) & (hi[:, None] > a_lo[None]), axis=2)
         labels[np.any(meets_avoid, axis=1)] = AVOID
         return labels
 
@@ -182,21 +228,25 @@ class StateGrid:
         return np.flatnonzero(self.labels == NONTERMINAL)
 
     def in_reach(self, x):
-        """Whether points ``x: (..., n)`` lie in X_reach (the true sets, not the cells)."""
-        return self._in_boxes(self.wrap(x), self.reach_boxes)
+        """Whether points ``x: (..., n)`` lie in X_reach (the closed reach boxes; the true sets,
+        not the cells)."""
+        return self._in_boxes(self.wrap(x), self.reach_boxes, closed=True)
 
     def in_avoid(self, x):
-        """Whether points ``x: (..., n)`` lie in X_avoid: outside the grid box or in an avoid box."""
+        """Whether points ``x: (..., n)`` lie in X_avoid: outside the (closed) grid box, NaN, or in
+        the interior of an avoid box."""
         x = self.wrap(x)
         outside = ~jnp.all((x >= self.low) & (x <= self.high), axis=-1) | jnp.any(jnp.isnan(x), axis=-1)
-        return outside | self._in_boxes(x, self.avoid_boxes)
+        return outside | self._in_boxes(x, self.avoid_boxes, closed=False)
 
     @staticmethod
-    def _in_boxes(x, boxes):
+    def _in_boxes(x, boxes, closed: bool):
         lo, hi = boxes
         if lo.shape[0] == 0:
             return jnp.zeros(x.shape[:-1], bool)
-        return jnp.any(jnp.all((x[..., None, :] >= lo) & (x[..., None, :] <= hi), axis=-1), axis=-1)
+        x = x[..., None, :]
+        inside = (x >= lo) & (x <= hi) if closed else (x > lo) & (x < hi)
+        return jnp.any(jnp.all(inside, axis=-1), axis=-1)
 
     def __repr__(self):
         counts = np.bincount(self.labels, minlength=3)
