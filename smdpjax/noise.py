@@ -42,6 +42,13 @@ class Distribution(abc.ABC):
     def sample(self, key, shape=()):
         """Samples of shape ``(*shape, d)``."""
 
+    @property
+    def has_density(self) -> bool:
+        """Every component has a density (no atoms), so a noise box's faces carry probability 0.
+        Lets the abstraction treat a reachable box's ends that come from noise bounds as never
+        attained. False (the conservative answer) unless a subclass knows better."""
+        return False
+
     def mean(self):
         """Mean ``(d,)``; used to probe the dynamics for shape and finiteness checks."""
         low, high = self.support()
@@ -101,6 +108,10 @@ class Gaussian(Distribution):
         d = self.dim
         return np.full(d, -np.inf), np.full(d, np.inf)
 
+    @property
+    def has_density(self) -> bool:
+        return True  # std > 0 in every component
+
     def sample(self, key, shape=()):
         shape = tuple(np.atleast_1d(shape)) if shape != () else ()
         return self._mean + self.std * jax.random.normal(key, (*shape, self.dim), dtype=jnp.float64)
@@ -140,6 +151,10 @@ class Uniform(Distribution):
 
     def support(self):
         return self.low.copy(), self.high.copy()
+
+    @property
+    def has_density(self) -> bool:
+        return True  # low < high in every component
 
     def sample(self, key, shape=()):
         shape = tuple(np.atleast_1d(shape)) if shape != () else ()

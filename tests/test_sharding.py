@@ -195,7 +195,10 @@ def test_solutions_equal_to_one_device(runs, kind, task):
         elif "policy" in key:
             assert np.mean(a != b) <= 0.05, key  # near-ties of the LP-certified values
         else:
-            np.testing.assert_allclose(b, a, rtol=0, atol=1e-8, err_msg=key)  # LP solver tolerance
+            # LP solver tolerance, and for an unbounded horizon the value iteration's (1e-6): near-ties
+            # of the LP-certified values may pick another strategy and stop elsewhere within tol
+            atol = 1e-6 if task == "unbounded" else 1e-8
+            np.testing.assert_allclose(b, a, rtol=0, atol=atol, err_msg=key)
     if kind != "mimdp":
         assert one[task][:3] == many[task][:3]  # iterations and convergence
     else:

@@ -37,9 +37,11 @@ def test_every_sampled_successor_lies_in_its_cluster(nonlinear):
     rows, acts, cells = (rng.integers(0, m, 4000) for m in members.shape[:3])
     x_lo, x_hi = (np.asarray(b) for b in grid.cell_bounds(clusters.rows[rows]))
     w_lo, w_hi = (np.asarray(b)[cells] for b in noise.boxes())
-    # corners are where interval bounds are tight, so sample them as often as the inside
+    # corners are where interval bounds are tight, so sample them as often as the inside; cells
+    # are half-open, so the upper corner is the last float below an excluded face
     corner = rng.integers(0, 2, x_lo.shape).astype(bool)
-    x = np.where(rng.uniform(size=(4000, 1)) < 0.3, np.where(corner, x_lo, x_hi), rng.uniform(x_lo, x_hi))
+    top = np.where(np.asarray(grid.upper_attained(clusters.rows[rows])), x_hi, np.nextafter(x_hi, -np.inf))
+    x = np.where(rng.uniform(size=(4000, 1)) < 0.3, np.where(corner, x_lo, top), rng.uniform(x_lo, x_hi))
     w = rng.uniform(w_lo, w_hi)
     nxt = system.step(jnp.asarray(x), jnp.asarray(acts), jnp.asarray(w))
     cell = np.asarray(grid.locate(nxt))

@@ -12,16 +12,21 @@ wrap to the sink.
 
 from __future__ import annotations
 
+import functools
+from fractions import Fraction
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .._pytree import pytree_dataclass
 from ..partition import StateGrid
+from ..reach.interval import _subnormal
 
-# Slack, in units of cells, by which a box is grown before it is snapped to cell indices. It
-# dwarfs the rounding error of (x - low) / width (~1e-13 cells on 10^3-cell axes) and so only ever
-# adds cells (never drops one); a box that touches a face meets both cells, as closed cells do.
+# Slack, in units of cells, for boxes that wrap around a periodic dimension: their ends are
+# compared with the faces after a rounded shift by the period, so the snapping there treats cells
+# as closed and grows the box by this slack (it dwarfs the ~1e-13 cells of rounding); it only ever
+# adds cells.
 INDEX_SLACK = 1e-9
 
 
@@ -55,38 +60,120 @@ class IndexBoxes:
         return self.misses_grid
 
 
-def index_boxes(grid: StateGrid, lo, hi) -> IndexBoxes:
-    """Index boxes of reachable boxes ``lo, hi: (*B, n)`` on ``grid`` (jit-friendly)."""
-    cells = jnp.asarray(grid.cells, jnp.int32)
-    ncell = jnp.asarray(grid.cells, lo.dtype)
-    periodic = jnp.asarray(grid.periodic)
-    span_cells = (hi - lo) / grid.width
-    # Periodic coordinates: move the box's lower end into [low, high), keep its span.
-    lo_wrapped = grid.low + jnp.mod(lo - grid.low, grid.high - grid.low)
-    lo = jnp.where(periodic, lo_wrapped, lo)
-    # Clip before converting to int: infinite bounds (an unbounded enclosure) stay meaningful.
-    t_lo = jnp.clip((lo - grid.low) / grid.width, -2.0, ncell + 2.0)
-    t_hi = jnp.clip(jnp.where(periodic, t_lo + span_cells, (hi - grid.low) / grid.width), -2.0, 2 * ncell + 2.0)
-    raw_lo = jnp.ceil(t_lo - INDEX_SLACK).astype(jnp.int32) - 1  # closed cell i meets [lo, hi] iff i + 1 >= t_lo
-    raw_hi = jnp.floor(t_hi + INDEX_SLACK).astype(jnp.int32)  # ... and i <= t_hi
+def index_boxes(grid: StateGrid, lo, hi, hi_open=None) -> IndexBoxes:
+    """Index boxes of reachable boxes ``lo, hi: (*B, n)`` on ``grid`` (jit-friendly).
 
-    first = jnp.maximum(raw_lo, 0)
-    last = jnp.minimum(raw_hi, cells - 1)
-    flat_length = jnp.maximum(last - first + 1, 0)
-
-    full_turn = ~(span_cells + 2 * INDEX_SLACK < ncell)  # also True for an infinite or NaN span
-    wrap_length = jnp.where(full_turn, cells, jnp.minimum(raw_hi - raw_lo + 1, cells))
-    wrap_start = jnp.where(full_turn, 0, jnp.mod(raw_lo, cells))
-
-    start = jnp.where(periodic, wrap_start, first)
-    length = jnp.where(periodic, wrap_length, flat_length)
-    leaves = (t_lo < INDEX_SLACK) | (t_hi > ncell - INDEX_SLACK)
-    sink = jnp.any(leaves & ~periodic, axis=-1)
+    Cells are half-open (``StateGrid``), and a box ``[lo, hi]`` meets the cells that the next
+    state can reach with positive probability: a lower end exactly on a face ``e_k`` does not
+    reach the cell below it; an upper end exactly on a face reaches the cell above it unless
+    ``hi_open`` (``(*B, n)`` bool, default all False: the closed, conservative rule) says the
+    value stays below it almost surely. Faces are compared exactly with ``grid.edges``. On a
+    periodic dimension a box that does not lie within ``[low, high]`` is shifted by the period
+    with rounding, so there cells are taken as closed and grown by ``INDEX_SLACK``.
+    """
+    hi_open = jnp.zeros(jnp.shape(hi), bool) if hi_open is None else jnp.asarray(hi_open, bool)
+    # Subnormal ends (compared as 0 by XLA on the CPU) rounded outward to 0 or +-tiny.
+    tiny = float(np.finfo(np.float64).tiny)
+    sub_lo, sub_hi = _subnormal(lo), _subnormal(hi)
+    lo = jnp.where(sub_lo, jnp.where(jnp.signbit(lo), -tiny, 0.0), lo)
+    hi_open = hi_open | sub_hi
+    hi = jnp.where(sub_hi, jnp.where(jnp.signbit(hi), 0.0, tiny), hi)
+    starts, lengths, leaves = [], [], []
+    for d in range(grid.n):
+        args = (grid, d, lo[..., d], hi[..., d], hi_open[..., d])
+        if grid.periodic[d]:
+            start, length = _periodic_dimension(*args)
+            leave = jnp.zeros(jnp.shape(start), bool)
+        else:
+            start, length, leave = _flat_dimension(*args)
+        starts.append(start)
+        lengths.append(length)
+        leaves.append(leave)
+    start, length = jnp.stack(starts, axis=-1), jnp.stack(lengths, axis=-1)
+    sink = functools.reduce(jnp.logical_or, leaves)
     # A box that misses the grid in one dimension misses it altogether.
     empty = jnp.any(length == 0, axis=-1, keepdims=True)
     length = jnp.where(empty, 0, length)
     start = jnp.where(empty, 0, start)
     return IndexBoxes(start=start.astype(jnp.int32), length=length.astype(jnp.int32), sink=sink | empty[..., 0])
+
+
+def _last_cell(grid: StateGrid, d: int, hi, hi_open, top: int):
+    """Index of the last cell an upper end reaches (``top`` for hi at ``high``): the cell
+    containing hi, or the one below when hi lies exactly on its lower face and is open."""
+    e = jnp.asarray(grid.edges[d])
+    j = jnp.where(hi >= grid.high[d], top, grid.dimension_index(jnp.clip(hi, grid.low[d], grid.high[d]), d))
+    return j - ((hi == e[j]) & hi_open).astype(jnp.int32)
+
+
+def _flat_dimension(grid: StateGrid, d: int, lo, hi, hi_open):
+    """(first cell, number of cells, leaves the grid box) along a non-periodic dimension."""
+    low, high = grid.low[d], grid.high[d]
+    first = grid.dimension_index(jnp.clip(lo, low, high), d)
+    last = _last_cell(grid, d, hi, hi_open, int(grid.cells[d]) - 1)
+    # lo inside the grid: the box meets lo's cell whatever the flags say (an open end equal to
+    # lo would make the box a null set; counting the cell is the safe side).
+    last = jnp.where(lo >= low, jnp.maximum(last, first), last)
+    meets = (lo <= high) & (hi >= low) & (last >= first)
+    length = jnp.where(meets, last - first + 1, 0)
+    return first, length, (lo < low) | (hi > high)
+
+
+def _periodic_dimension(grid: StateGrid, d: int, lo, hi, hi_open):
+    """(first cell, number of cells) along a periodic dimension, wrapping around.
+
+    Each end is brought into ``[low, high]`` by adding -P, 0 or P (P = high - low, when exactly
+    representable) with the exact error of that addition (TwoSum), so it is located among the
+    faces exactly as an unshifted end would be; ``high`` itself is ``low`` again (cell number
+    ``cells`` is cell 0). Ends farther than one period out, or a period that is not a float, fall
+    back to closed cells grown by ``INDEX_SLACK``."""
+    low, high = float(grid.low[d]), float(grid.high[d])
+    cells = int(grid.cells[d])
+    period = high - low
+    exact_period = Fraction(high) - Fraction(low) == Fraction(period)
+    span = hi - lo
+    full_turn = ~(span < period * (1 - 8 * np.finfo(np.float64).eps))  # also for inf / NaN spans
+    first, ok_lo = _periodic_end(grid, d, lo, jnp.zeros(jnp.shape(lo), bool), period, lower=True)
+    last, ok_hi = _periodic_end(grid, d, hi, hi_open, period, lower=False)
+    last = jnp.maximum(last, first)
+    exact_ok = ok_lo & ok_hi & exact_period
+    exact_length = jnp.minimum(last - first + 1, cells)
+    exact_start = jnp.mod(first, cells)
+    # Fallback: shifted by the period with rounding, closed cells with slack.
+    width = grid.width[d]
+    t_lo = jnp.mod(lo - low, period) / width
+    t_hi = t_lo + span / width
+    raw_lo = jnp.ceil(jnp.clip(t_lo, -2.0, cells + 2.0) - INDEX_SLACK).astype(jnp.int32) - 1
+    raw_hi = jnp.floor(jnp.clip(t_hi, -2.0, 3.0 * cells + 2.0) + INDEX_SLACK).astype(jnp.int32)
+    wrap_length = jnp.minimum(raw_hi - raw_lo + 1, cells)
+    wrap_start = jnp.mod(raw_lo, cells)
+    start = jnp.where(full_turn, 0, jnp.where(exact_ok, exact_start, wrap_start))
+    length = jnp.where(full_turn, cells, jnp.where(exact_ok, exact_length, wrap_length))
+    return start, length
+
+
+def _periodic_end(grid: StateGrid, d: int, x, x_open, period: float, lower: bool):
+    """Unwrapped cell index (cell k of period m is ``m * cells + k``) of a box end x along a
+    periodic dimension, and whether it was decided exactly."""
+    low, high = float(grid.low[d]), float(grid.high[d])
+    cells = int(grid.cells[d])
+    e = jnp.asarray(grid.edges[d])
+    m = jnp.where(x < low, -1, jnp.where(x > high if not lower else x >= high, 1, 0))
+    shift = -m.astype(x.dtype) * period
+    s = x + shift
+    bb = s - x
+    err = (x - (s - bb)) + (shift - bb)  # TwoSum: x + shift = s + err exactly
+    decided = (((x == 0) | (jnp.abs(x) >= 2.0 ** -969)) & (s >= low) & (s <= high)
+               & ((s == 0) | (jnp.abs(s) >= 2.0 ** -969)))
+    at_top = s >= high
+    k = jnp.where(at_top, cells, grid.dimension_index(jnp.clip(s, low, high), d))
+    on_face = s == e[k]
+    if lower:
+        k = k - (on_face & (err < 0)).astype(jnp.int32)
+    else:
+        k = k - (on_face & ((err < 0) | ((err == 0) & x_open))).astype(jnp.int32)
+    decided = decided & (jnp.abs(m) <= 1) & ~(at_top & (err > 0))
+    return m * cells + k, decided
 
 
 def index_dtype(num_states: int):

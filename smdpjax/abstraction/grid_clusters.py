@@ -54,6 +54,10 @@ def validate(system: System, grid: StateGrid, noise_grid: NoiseGrid) -> np.ndarr
         raise ValueError(f"{grid!r} has no non-terminal cell: every cell is a reach or avoid cell")
     probe = np.asarray(grid.cell_centers(rows[np.linspace(0, rows.size - 1, min(rows.size, 64)).astype(int)]))
     system.check_against(grid.n, probe)
+    actions = np.asarray(system.actions, np.float64)
+    if np.any((actions != 0) & (np.abs(actions) < np.finfo(np.float64).tiny)):
+        raise ValueError("actions contain subnormal numbers (below 2.2e-308 in magnitude), which XLA on the CPU "
+                         "reads as 0; round them to 0")
     return rows
 
 
@@ -94,7 +98,7 @@ def compute_grid_clusters(system: System, grid: StateGrid, noise_grid: NoiseGrid
         place = functools.partial(jax.device_put, device=split)
         if hasattr(jax, "set_mesh"):  # trace under the mesh: constants then match the inputs'
             on_mesh = functools.partial(jax.set_mesh, split.mesh)  # shardings (no `reshard` ops)
-    run = _chunk_fn(system.dynamics, grid, method)
+    run = _chunk_fn(system.dynamics, grid, method, bool(system.noise.has_density))
     starts = range(0, rows.size, chunk)
     if progress:
         from tqdm.auto import tqdm
@@ -104,10 +108,11 @@ def compute_grid_clusters(system: System, grid: StateGrid, noise_grid: NoiseGrid
         idx = rows[start:start + chunk]
         padded = np.concatenate([idx, np.full(chunk - idx.size, idx[-1])])  # one compiled shape
         x_lo, x_hi = place(grid.cell_bounds(padded))
+        x_open = place(~grid.upper_attained(padded))
         row_actions = actions if actions.ndim == 2 else place(actions[np.minimum(np.arange(start, start + chunk),
                                                                                  rows.size - 1)])
         with on_mesh():
-            boxes, has_nan = run(x_lo, x_hi, row_actions, w_lo, w_hi)
+            boxes, has_nan = run(x_lo, x_hi, x_open, row_actions, w_lo, w_hi)
         if mesh is not None or idx.size < chunk:
             trim = (lambda a: a[:idx.size]) if mesh is None else (lambda a: np.asarray(a)[:idx.size])  # gathered
             boxes, has_nan = jax.tree.map(trim, boxes), has_nan[:idx.size]
@@ -126,16 +131,16 @@ def compute_grid_clusters(system: System, grid: StateGrid, noise_grid: NoiseGrid
     return GridClusters(rows=rows, boxes=boxes, prob=prob, prob_rest=prob_rest)
 
 
-def _chunk_fn(dynamics, grid: StateGrid, method: str):
+def _chunk_fn(dynamics, grid: StateGrid, method: str, noise_open: bool):
     """The compiled chunk computation, shared by every grid of the same geometry (a new
     ``StateGrid`` object with the same box, cells and periodicity does not recompile)."""
     geometry = (tuple(grid.low.tolist()), tuple(grid.high.tolist()), tuple(int(c) for c in grid.cells),
                 tuple(bool(p) for p in grid.periodic))
-    return _chunk_fn_for(dynamics, geometry, method)
+    return _chunk_fn_for(dynamics, geometry, method, noise_open)
 
 
 @functools.lru_cache(maxsize=32)
-def _chunk_fn_for(dynamics, geometry: tuple, method: str):
+def _chunk_fn_for(dynamics, geometry: tuple, method: str, noise_open: bool):
     low, high, cells, periodic = geometry
     grid = StateGrid(np.array(low), np.array(high), np.array(cells), periodic=np.array(periodic))
 
@@ -146,14 +151,14 @@ def _chunk_fn_for(dynamics, geometry: tuple, method: str):
     # benchmarks/cpu_layouts.py (identical boxes): one program takes 2.0x as long on the 2-D
     # unicycle, 0.98x on the 3-D unicycle and 0.73-1.18x on the 4-room model (cheap affine
     # dynamics) across runs: the split pays where the dynamics are costly to enclose.
-    enclose = jax.jit(functools.partial(reachable_boxes, dynamics, method=method))
+    enclose = jax.jit(functools.partial(reachable_boxes, dynamics, method=method, noise_open=noise_open))
 
     @jax.jit
-    def snap(lo, hi):
+    def snap(lo, hi, hi_open):
         has_nan = jnp.any(jnp.isnan(lo) | jnp.isnan(hi), axis=(1, 2, 3))
-        return index_boxes(grid, lo, hi), has_nan
+        return index_boxes(grid, lo, hi, hi_open), has_nan
 
-    def run(x_lo, x_hi, actions, w_lo, w_hi):
-        return snap(*enclose(x_lo, x_hi, actions, w_lo, w_hi))
+    def run(x_lo, x_hi, x_open, actions, w_lo, w_hi):
+        return snap(*enclose(x_lo, x_hi, actions, w_lo, w_hi, x_high_open=x_open))
 
     return run

@@ -159,26 +159,36 @@ def centered_enclosure(fn: Callable, lows: Sequence, highs: Sequence):
     return _centered(fn, lows, highs, nat)
 
 
-def enclose(fn: Callable, lows: Sequence, highs: Sequence, method: str = "both"):
+def enclose(fn: Callable, lows: Sequence, highs: Sequence, method: str = "both", open_lows=None,
+            open_highs=None, with_open: bool = False):
     """Box enclosure of fn over the box by ``method``: "natural" (interval extension),
     "centered" (mean-value form) or "both" (their intersection: never looser than either).
 
-    Same contract as `natural_enclosure`: returns (lo, hi) with fn's output shape."""
+    Same contract as `natural_enclosure`: returns (lo, hi) with fn's output shape. With
+    ``with_open``, returns ``(lo, hi, lo_open, hi_open)``: open ends as in `interval_eval`, given
+    the inputs' ``open_lows``/``open_highs``. Ends from the centred form are closed (its radius
+    is not tracked end by end), so they are open only where the natural bound is the tighter."""
     if method not in ("natural", "centered", "both"):
         raise ValueError(f"unknown enclosure method {method!r}; use 'natural', 'centered' or 'both'")
     lows, highs = as_box(lows, highs)
-    if method == "natural":
-        return natural_enclosure(fn, lows, highs)
-    nat = interval_eval(fn, lows, highs, track_magnitude=True)
+    nat = interval_eval(fn, lows, highs, track_magnitude=method != "natural", open_lows=open_lows,
+                        open_highs=open_highs)
     if len(nat.lo) != 1:
         raise ValueError(f"fn must return exactly one array, got {nat.treedef}")
+    n_lo, n_hi, n_lo_open, n_hi_open = nat.lo[0], nat.hi[0], nat.lo_open[0], nat.hi_open[0]
+    if method == "natural":
+        return (n_lo, n_hi, n_lo_open, n_hi_open) if with_open else (n_lo, n_hi)
     c_lo, c_hi = _centered(fn, lows, highs, nat)
     if method == "centered":
-        return c_lo, c_hi
-    n_lo, n_hi = nat.lo[0], nat.hi[0]
+        closed = jnp.zeros(jnp.shape(c_lo), bool)
+        return (c_lo, c_hi, closed, closed) if with_open else (c_lo, c_hi)
     # The centred bound is NaN when J is (0*inf); the natural one is then all we have.
     lo = jnp.where(jnp.isnan(c_lo), n_lo, jnp.maximum(n_lo, c_lo))
     hi = jnp.where(jnp.isnan(c_hi), n_hi, jnp.minimum(n_hi, c_hi))
     # Both are enclosures, so they overlap; should that ever fail, keep the hull, not nothing.
     empty = lo > hi
-    return jnp.where(empty, jnp.minimum(n_lo, c_lo), lo), jnp.where(empty, jnp.maximum(n_hi, c_hi), hi)
+    lo = jnp.where(empty, jnp.minimum(n_lo, c_lo), lo)
+    hi = jnp.where(empty, jnp.maximum(n_hi, c_hi), hi)
+    if not with_open:
+        return lo, hi
+    return lo, hi, n_lo_open & (lo == n_lo), n_hi_open & (hi == n_hi)

@@ -21,6 +21,21 @@ Conventions
 * Every variable also carries a flag "possibly discontinuous in the box variables" (set by
   ``select_n``/``cond`` with an undecided predicate, ``sign``/``floor``/... across a jump, bool to
   number conversions, float narrowing). `centered.py` uses it: a mean-value form needs continuity.
+* Outward rounding only where an operation rounded. ``add``/``sub`` find the sign of their
+  rounding error exactly (TwoSum) and keep the float result when it already lies on the safe
+  side; ``mul``/``div`` keep it when the product is exact (significand bit counts); ``sin(0) = 0``,
+  ``cos(0) = 1``, ``exp(0) = 1`` and the other exact special values of library functions are
+  kept. So an exactly representable bound (``x + 0.1 * 0 * cos(t) = x``) stays exactly where it is,
+  which is what lets a reachable box end exactly on a cell face. Every other rule widens.
+* Open ends: ``lo_open``/``hi_open`` (bool arrays or Python False) state that the value never
+  attains the bound with positive probability: for every state in the (half-open) state box,
+  the set of noise values with ``value >= hi`` has probability zero (noise with a density). A
+  widened bound is open (the value lies strictly inside); the rules for add, sub, neg, mul,
+  max, min, clamp, select and structural ops propagate the flags exactly; every other rule
+  returns closed ends (False), the conservative answer. Cell snapping uses ``hi_open`` to decide
+  whether an upper bound exactly on a face reaches the cell above it.
+* Subnormal inputs and constants (flushed to zero by XLA on the CPU) are replaced by intervals
+  around them, so the exactness tests only ever see zeros and normal numbers.
 """
 from __future__ import annotations
 
@@ -42,27 +57,40 @@ _LIB = 1e-13       # relative widening for library functions (not correctly roun
 _LIB_LOOSE = 1e-12  # ... for the ones measured at ~1e-14 relative error (exp2, log1p, sinh, ...)
 _BOUNDED_ABS = 1e-15  # extra absolute widening for bounded functions (sin, tanh, erf, ...)
 _TRIG_MAX = 1e8    # beyond this |x| argument reduction is not trusted: sin/cos give [-1, 1]
+# sin/cos accuracy. On the CPU XLA's float64 sin and cos are faithful (the exact value lies strictly
+# between the result's two float neighbours; measured max error 0.56 ulp against mpmath at 45 000
+# points including the neighbours of every multiple of pi/4 in [-10 pi, 10 pi], where an absolute
+# error model would lose the sign of cos(fl(pi/2))), so one float step bounds them;
+# tests/reach/test_exact_rounding.py re-measures this wherever the suite runs. Elsewhere (CUDA
+# documents 2 ulp) a relative 2^-48 (16 ulp), chosen per platform by lax.platform_dependent.
+_TRIG_REL = 2.0 ** -48
 _TWO_PI = 2.0 * math.pi
 
 
 class Iv(NamedTuple):
     """Interval of arrays; ``disc`` is a scalar bool (Python False or traced): the value may be a
     discontinuous function of the box variables. ``src`` = ("max"|"min", a, b) records that the
-    value is max/min(a, b), so that jvp's tie tests eq(a, max(a, b)) can be decided."""
+    value is max/min(a, b), so that jvp's tie tests eq(a, max(a, b)) can be decided.
+    ``lo_open``/``hi_open``: the bound is almost surely not attained (module docstring)."""
     lo: Any
     hi: Any
     disc: Any = False
     src: Any = None
+    lo_open: Any = False
+    hi_open: Any = False
 
 
 class IntervalResult(NamedTuple):
-    """Flattened outputs of `interval_eval`: lists of ``lo``, ``hi`` arrays and ``disc`` flags, and
-    ``magnitude``: max finite |bound| over all float intermediates (None unless requested)."""
+    """Flattened outputs of `interval_eval`: lists of ``lo``, ``hi`` arrays and ``disc`` flags,
+    ``magnitude``: max finite |bound| over all float intermediates (None unless requested), and
+    lists of bool arrays ``lo_open``, ``hi_open`` (the bound is almost surely not attained)."""
     lo: list
     hi: list
     disc: list
     magnitude: Any
     treedef: Any
+    lo_open: list = ()
+    hi_open: list = ()
 
 
 # --------------------------------------------------------------------------- helpers
@@ -129,17 +157,160 @@ def _outward_jvp(up, rel, primals, tangents):
 
 
 def _rounded(lo, hi, rel=0.0, abs_=0.0) -> Iv:
-    return Iv(_nudge(lo, False, rel, abs_), _nudge(hi, True, rel, abs_))
+    """Widened outward: the value lies strictly inside, so both ends are open."""
+    return Iv(_nudge(lo, False, rel, abs_), _nudge(hi, True, rel, abs_), lo_open=True, hi_open=True)
+
+
+# --------------------------------------------------------------------------- exact rounding
+
+_SMALL = 2.0 ** -969  # below this a float's last bit may be subnormal: exactness is not decided
+
+
+def _float64(*xs) -> bool:
+    return all(jnp.result_type(x) == jnp.float64 for x in xs)
+
+
+def _decidable(x):
+    """Zero or large enough that every bit of x and of an error against it is a normal number."""
+    return (x == 0) | ((jnp.abs(x) >= _SMALL) & jnp.isfinite(x))
+
+
+def _sum_error(a, b, s):
+    """(a + b) - s exactly for s = fl(a + b) (TwoSum, no multiplication, so contraction into an
+    FMA cannot change it) and whether it is decided (see `_decidable`)."""
+    bb = s - a
+    err = (a - (s - bb)) + (b - bb)
+    return err, _decidable(a) & _decidable(b) & jnp.isfinite(s)
+
+
+def _directed(s, err, ok, up: bool):
+    """Bound from a float result s with exact error err: s itself where it already lies on the
+    safe side of the exact value, else its float neighbour on that side (the exact value lies
+    strictly between the two), so the bound is the directed rounding of the exact value.
+    Undecided errors widen. Returns (bound, strictly beyond the exact value)."""
+    safe = ok & ((err <= 0) if up else (err >= 0))
+    step = ok & ~safe & (jnp.abs(s) >= _SMALL)
+    bound = jnp.where(safe, s, jnp.where(step, _neighbour(s, up), _nudge(s, up)))
+    return bound, ~(ok & (err == 0))
+
+
+def _faithful(y, up: bool):
+    """Bound on the exact value of a faithfully rounded library result y (the exact value lies
+    strictly between y's two float neighbours): the neighbour on the safe side."""
+    return jnp.where(jnp.abs(y) >= _SMALL, _neighbour(y, up), _nudge(y, up))
+
+
+def _trig_bound(y, up: bool):
+    """Bound on the exact sin/cos value computed as y, on the platform the program is compiled
+    for (see _TRIG_REL)."""
+    return lax.platform_dependent(y, cpu=lambda v: _faithful(v, up),
+                                  default=lambda v: _nudge(v, up, _TRIG_REL))
+
+
+def _neighbour(s, up: bool):
+    """The next float64 above (up) or below s, for finite nonzero s (one step of its bits)."""
+    bits = lax.bitcast_convert_type(s, jnp.int64)
+    return lax.bitcast_convert_type(bits + jnp.where((s > 0) == up, 1, -1).astype(jnp.int64), jnp.float64)
+
+
+_MANTISSA = (1 << 52) - 1
+_HIDDEN = 1 << 52
+
+
+def _odd_significand(x):
+    """(number of significant bits, odd significand) of float64 x as int64 arrays."""
+    bits = lax.bitcast_convert_type(x, jnp.int64)
+    m = (bits & _MANTISSA) | _HIDDEN
+    tz = lax.population_count((m & -m) - 1)
+    return 53 - tz, lax.shift_right_logical(m, tz)
+
+
+def _product_exact(x, y, p):
+    """fl(x * y) = p equals x * y exactly (0 * inf counts as the exact 0 of the convention)."""
+    if not _float64(x, y, p):
+        return jnp.zeros(jnp.shape(p), bool)
+    kx, ox = _odd_significand(x)
+    ky, oy = _odd_significand(y)
+    k = kx + ky
+    fits = (k <= 53) | ((k == 54) & (ox * oy < (1 << 53)))  # odd parts: k - 1 or k product bits
+    info = jnp.finfo(jnp.float64)
+    normal = (jnp.abs(p) >= float(info.tiny)) & (jnp.abs(p) <= float(info.max))
+    return (x == 0) | (y == 0) | (fits & normal)
+
+
+def _special_exact(fn_name, x, fx):
+    """fx = f(x) is exact at the function's special points (f(0) = 0, exp(0) = 1, ...)."""
+    pairs = _SPECIAL.get(fn_name, ())
+    exact = jnp.zeros(jnp.shape(fx), bool)
+    for a, b in pairs:
+        exact = exact | ((x == a) & (fx == b))
+    return exact
+
+
+_SPECIAL = {  # exact values of library functions, where IEEE results are exact in any libm
+    "exp": ((0.0, 1.0),), "exp2": ((0.0, 1.0),), "expm1": ((0.0, 0.0),), "log": ((1.0, 0.0),),
+    "log1p": ((0.0, 0.0),), "sqrt": ((0.0, 0.0), (1.0, 1.0)), "rsqrt": ((1.0, 1.0),),
+    "cbrt": ((0.0, 0.0),), "tanh": ((0.0, 0.0),), "logistic": ((0.0, 0.5),), "erf": ((0.0, 0.0),),
+    "atan": ((0.0, 0.0),), "asinh": ((0.0, 0.0),), "sinh": ((0.0, 0.0),), "asin": ((0.0, 0.0),),
+    "acos": ((1.0, 0.0),), "atanh": ((0.0, 0.0),), "cosh": ((0.0, 1.0),), "sin": ((0.0, 0.0),),
+    "cos": ((0.0, 1.0),), "tan": ((0.0, 0.0),),
+}
+
+
+def _keep_exact(exact, value, widened):
+    """value where exact, the widened bound elsewhere; plus 'widened here' (an open end)."""
+    return jnp.where(exact, value, widened), ~exact
+
+
+def _subnormal(x):
+    """Subnormal entries, by their bits (XLA's CPU code compares them as 0)."""
+    bits = lax.bitcast_convert_type(x, jnp.int64)
+    return ((bits & (0x7FF << 52)) == 0) & ((bits & _MANTISSA) != 0)
+
+
+def _sanitize(iv: Iv) -> Iv:
+    """Subnormal entries as intervals around them: [0, tiny] or [-tiny, 0]."""
+    if not _float64(iv.lo):
+        return iv
+    if not isinstance(iv.lo, jax.core.Tracer) and not isinstance(iv.hi, jax.core.Tracer):
+        lo_np, hi_np = np.asarray(iv.lo), np.asarray(iv.hi)
+        if not (np.any(_subnormal_np(lo_np)) or np.any(_subnormal_np(hi_np))):
+            return iv
+    tiny = float(jnp.finfo(jnp.float64).tiny)
+    sub_lo, sub_hi = _subnormal(iv.lo), _subnormal(iv.hi)
+    neg_lo = lax.bitcast_convert_type(iv.lo, jnp.int64) < 0
+    neg_hi = lax.bitcast_convert_type(iv.hi, jnp.int64) < 0
+    lo = jnp.where(sub_lo, jnp.where(neg_lo, -tiny, 0.0), iv.lo)
+    hi = jnp.where(sub_hi, jnp.where(neg_hi, 0.0, tiny), iv.hi)
+    return Iv(lo, hi, iv.disc, None, _or(iv.lo_open, sub_lo), _or(iv.hi_open, sub_hi))
+
+
+def _constant(value) -> Iv:
+    """A concrete constant: a point, or an interval around its subnormal entries."""
+    if isinstance(value, jax.core.Tracer):
+        return _point(value)
+    host = np.asarray(value)
+    if host.dtype == np.float64 and np.any(_subnormal_np(host)):
+        return _sanitize(Iv(jnp.asarray(host), jnp.asarray(host.copy())))
+    return _point(jnp.asarray(value))
+
+
+def _subnormal_np(x):
+    return (x != 0) & (np.abs(x) < np.finfo(np.float64).tiny)
 
 
 def _clip_range(iv: Iv, rmin=None, rmax=None) -> Iv:
-    """Clamp to a function's true range (after widening); jnp.maximum/minimum propagate NaN."""
+    """Clamp to a function's true range (after widening); jnp.maximum/minimum propagate NaN.
+    A clamped end is closed (the range's bound may be attained)."""
     lo, hi = iv.lo, iv.hi
+    lo_open, hi_open = iv.lo_open, iv.hi_open
     if rmin is not None:
+        lo_open, hi_open = lo_open & ~(lo < rmin), hi_open & ~(hi < rmin)
         lo, hi = jnp.maximum(lo, rmin), jnp.maximum(hi, rmin)
     if rmax is not None:
+        lo_open, hi_open = lo_open & ~(lo > rmax), hi_open & ~(hi > rmax)
         lo, hi = jnp.minimum(lo, rmax), jnp.minimum(hi, rmax)
-    return Iv(lo, hi, iv.disc)
+    return Iv(lo, hi, iv.disc, None, lo_open, hi_open)
 
 
 def _restrict(lo, hi, dmin=None, dmax=None):
@@ -238,19 +409,42 @@ def supported_primitives() -> list[str]:
 
 # --------------------------------------------------------------------------- arithmetic
 
+def _sum_bounds(x, y):
+    """Directed bounds (down, up) of x + y, and whether the exact sum lies strictly inside each."""
+    s = x + y
+    if not _float64(s):
+        return (_nudge(s, False), True), (_nudge(s, True), True)
+    err, ok = _sum_error(x, y, s)
+    return _directed(s, err, ok, False), _directed(s, err, ok, True)
+
+
+def _add_ends(a: Iv, b: Iv) -> Iv:
+    """[a] + [b] (b already negated for a subtraction)."""
+    (lo, lo_strict), up = _sum_bounds(a.lo, b.lo)
+    hi, hi_strict = up if _is_point(a) and _is_point(b) else _sum_bounds(a.hi, b.hi)[1]
+    return Iv(lo, hi, lo_open=_or(lo_strict, _or(a.lo_open, b.lo_open)),
+              hi_open=_or(hi_strict, _or(a.hi_open, b.hi_open)))
+
+
+def _negated(a: Iv) -> Iv:
+    if _is_point(a):
+        return _point(-a.lo)
+    return Iv(-a.hi, -a.lo, a.disc, None, a.hi_open, a.lo_open)
+
+
 @_rule("add", "add_any")
 def _add(eqn, a, b):
-    return _rounded(a.lo + b.lo, a.hi + b.hi)
+    return _add_ends(a, b)
 
 
 @_rule("sub")
 def _sub(eqn, a, b):
-    return _rounded(a.lo - b.hi, a.hi - b.lo)
+    return _add_ends(a, _negated(b))
 
 
 @_rule("neg")
 def _neg(eqn, a):
-    return Iv(-a.hi, -a.lo)
+    return _negated(a)
 
 
 def _mul0(x, y):
@@ -267,10 +461,36 @@ def _ends(iv):
     return (iv.lo,) if _is_point(iv) else (iv.lo, iv.hi)
 
 
+def _open_ends(iv):
+    return (False,) if _is_point(iv) else (iv.lo_open, iv.hi_open)
+
+
+def _extreme_of(values, exact, opens, up: bool):
+    """Bound max (up) or min of candidate ``values`` (each attained where its ``opens`` is False
+    and only at its corner): kept where every candidate equal to it is exact, else widened. Open
+    where it was widened, or where no closed candidate attains it and it is not 0 (a product is
+    then extreme only at corners; at 0 it may be attained along an edge)."""
+    best = functools.reduce(jnp.maximum if up else jnp.minimum, values)
+    all_exact, closed_hit = True, False
+    for v, e, o in zip(values, exact, opens):
+        hit = v == best
+        all_exact = all_exact & (~hit | e)
+        closed_hit = closed_hit | (hit & ~jnp.asarray(o, bool))
+    # An inexact IEEE result is within half a unit of the exact one: one float step is safe.
+    step = jnp.where(jnp.abs(best) >= _SMALL, _neighbour(best, up), _nudge(best, up))
+    bound, widened = _keep_exact(all_exact, best, step)
+    return bound, widened | (~closed_hit & (best != 0))
+
+
 @_rule("mul")
 def _mul(eqn, a, b):
-    ps = [_mul0(x, y) for x in _ends(a) for y in _ends(b)]
-    return _rounded(functools.reduce(jnp.minimum, ps), functools.reduce(jnp.maximum, ps))
+    pairs = [(x, y, _or(ox, oy)) for x, ox in zip(_ends(a), _open_ends(a)) for y, oy in zip(_ends(b), _open_ends(b))]
+    ps = [_mul0(x, y) for x, y, _ in pairs]
+    exact = [_product_exact(x, y, p) for (x, y, _), p in zip(pairs, ps)]
+    opens = [o for _, _, o in pairs]
+    lo, lo_open = _extreme_of(ps, exact, opens, False)
+    hi, hi_open = _extreme_of(ps, exact, opens, True)
+    return Iv(lo, hi, lo_open=lo_open, hi_open=hi_open)
 
 
 @_rule("div")
@@ -279,8 +499,13 @@ def _div(eqn, a, b):
     # NaN gradients in the unselected branch).
     has0 = (b.lo <= 0) & (b.hi >= 0)
     one = jnp.ones_like(b.lo)
-    qs = [x / y for x in _ends(a) for y in (jnp.where(has0, one, b.lo), jnp.where(has0, one, b.hi))]
-    out = _rounded(functools.reduce(jnp.minimum, qs), functools.reduce(jnp.maximum, qs))
+    pairs = [(x, y) for x in _ends(a) for y in (jnp.where(has0, one, b.lo), jnp.where(has0, one, b.hi))]
+    qs = [x / y for x, y in pairs]
+    # x / y = q exactly iff q * y is an exact product equal to x.
+    exact = [_product_exact(q, y, q * y) & (q * y == x) & jnp.isfinite(q) for (x, y), q in zip(pairs, qs)]
+    lo, lo_w = _extreme_of(qs, exact, [False] * len(qs), False)
+    hi, hi_w = _extreme_of(qs, exact, [False] * len(qs), True)
+    out = Iv(lo, hi, lo_open=lo_w, hi_open=hi_w)
     nan_a = jnp.isnan(a.lo) | jnp.isnan(a.hi)
     return Iv(jnp.where(has0, jnp.where(nan_a, jnp.nan, -jnp.inf), out.lo),
               jnp.where(has0, jnp.where(nan_a, jnp.nan, jnp.inf), out.hi))
@@ -330,16 +555,26 @@ def _pow(eqn, x, y):
 
 
 def _unary(f, increasing=True, rel=_LIB, abs_=0.0, domain=(None, None), range_=(None, None)):
-    """Rule for a monotone elementwise function: map the endpoints, widen, clamp to the range."""
+    """Rule for a strictly monotone elementwise function: map the endpoints, widen except at
+    exact special values (`_SPECIAL`), clamp to the range. An unwidened end keeps its operand
+    end's open flag (strict monotonicity), unless the domain clamped it."""
     def rule(eqn, x):
         lo, hi = x.lo, x.hi
+        lo_open, hi_open = x.lo_open, x.hi_open
         if domain != (None, None):
-            lo, hi = _restrict(lo, hi, *domain)
+            r_lo, r_hi = _restrict(lo, hi, *domain)
+            lo_open, hi_open = lo_open & (r_lo == lo), hi_open & (r_hi == hi)
+            lo, hi = r_lo, r_hi
         a = f(eqn, lo)
         b = a if lo is hi else f(eqn, hi)
+        name = eqn.primitive.name
+        ea, eb = _special_exact(name, lo, a), _special_exact(name, hi, b)
         if not increasing:
-            a, b = b, a
-        return _clip_range(_rounded(a, b, rel, abs_), *range_)
+            a, b, ea, eb, lo_open, hi_open = b, a, eb, ea, hi_open, lo_open
+        wide = _rounded(a, b, rel, abs_)
+        new_lo, w_lo = _keep_exact(ea, a, wide.lo)
+        new_hi, w_hi = _keep_exact(eb, b, wide.hi)
+        return _clip_range(Iv(new_lo, new_hi, lo_open=w_lo | lo_open, hi_open=w_hi | hi_open), *range_)
     return rule
 
 
@@ -368,7 +603,10 @@ for _name, _kw in {
 @_rule("cosh")
 def _cosh(eqn, x):
     m, big = _abs_range(x.lo, x.hi)
-    return _clip_range(_rounded(_bind(eqn, m), _bind(eqn, big), _LIB_LOOSE), 1.0)
+    c_m = _bind(eqn, m)
+    wide = _rounded(c_m, _bind(eqn, big), _LIB_LOOSE)
+    lo, w_lo = _keep_exact(_special_exact("cosh", m, c_m), c_m, wide.lo)
+    return _clip_range(Iv(lo, wide.hi, lo_open=w_lo, hi_open=True), 1.0)
 
 
 def _hits(lo, hi, offset, period):
@@ -380,15 +618,23 @@ def _hits(lo, hi, offset, period):
 
 
 def _trig(peak, trough):
-    """sin/cos: endpoint images, raised to +-1 where the interval contains a max/min."""
+    """sin/cos: endpoint images, raised to +-1 where the interval contains a max/min. An end
+    equal to an exact special value (sin 0 = 0, cos 0 = 1) is kept, closed; others widen."""
     def rule(eqn, x):
         lo, hi = x.lo, x.hi
         a = _bind(eqn, lo)
         b = a if lo is hi else _bind(eqn, hi)
+        name = eqn.primitive.name
+        ea, eb = _special_exact(name, lo, a), _special_exact(name, hi, b)
         full = (hi - lo >= _TWO_PI) | (jnp.maximum(jnp.abs(lo), jnp.abs(hi)) > _TRIG_MAX)
-        top = jnp.where(full | _hits(lo, hi, peak, _TWO_PI), 1.0, jnp.maximum(a, b))
-        bot = jnp.where(full | _hits(lo, hi, trough, _TWO_PI), -1.0, jnp.minimum(a, b))
-        return _clip_range(_rounded(bot, top, _LIB, _BOUNDED_ABS), -1.0, 1.0)
+        top_hit, bot_hit = full | _hits(lo, hi, peak, _TWO_PI), full | _hits(lo, hi, trough, _TWO_PI)
+        top = jnp.where(top_hit, 1.0, jnp.maximum(a, b))
+        bot = jnp.where(bot_hit, -1.0, jnp.minimum(a, b))
+        exact_top = ~top_hit & (((top == a) & ea & ((top != b) | eb)) | ((top == b) & eb & ((top != a) | ea)))
+        exact_bot = ~bot_hit & (((bot == a) & ea & ((bot != b) | eb)) | ((bot == b) & eb & ((bot != a) | ea)))
+        new_lo, w_lo = _keep_exact(exact_bot, bot, _trig_bound(bot, False))
+        new_hi, w_hi = _keep_exact(exact_top, top, _trig_bound(top, True))
+        return _clip_range(Iv(new_lo, new_hi, lo_open=w_lo, hi_open=w_hi), -1.0, 1.0)
     return rule
 
 
@@ -522,36 +768,84 @@ def _require_point(eqn, iv, what):
             f"on the box (constant indices); got an interval")
 
 
-def _monotone(index_from=None, index_at=()):
+def _monotone(index_from=None, index_at=(), moves_flags=False):
     """Rule for ops non-decreasing in every value operand (structural ops, max, min, clamp, sort,
     reductions by max/min): apply the op to all lows and to all highs. Index operands (positions
-    `index_at`, or `index_from` onwards) must be points."""
+    `index_at`, or `index_from` onwards) must be points. ``moves_flags``: the op only moves
+    elements around, so it is applied to the open flags too (else the ends are closed)."""
     def rule(eqn, *ins):
         idx = set(index_at) | (set(range(index_from, len(ins))) if index_from is not None else set())
         for k in idx:
             _require_point(eqn, ins[k], "index operands")
         lo = _bind(eqn, *[i.lo for i in ins])
         hi = _bind(eqn, *[i.hi for i in ins])
+        flagged = moves_flags and any(i.lo_open is not False or i.hi_open is not False
+                                      for k, i in enumerate(ins) if k not in idx)
+        if flagged:
+            def flags(which):
+                return _bind(eqn, *[i.lo if k in idx else _flag_array(getattr(i, which), i.lo)
+                                    for k, i in enumerate(ins)])
+            lo_open, hi_open = flags("lo_open"), flags("hi_open")
         if eqn.primitive.multiple_results:
+            if flagged:
+                return [Iv(l, h, lo_open=lf, hi_open=hf) for l, h, lf, hf in zip(lo, hi, lo_open, hi_open)]
             return [Iv(l, h) for l, h in zip(lo, hi)]
+        if flagged:
+            return Iv(lo, hi, lo_open=lo_open, hi_open=hi_open)
         return Iv(lo, hi)
     return rule
 
 
-for _name in ["broadcast_in_dim", "reshape", "squeeze", "expand_dims", "concatenate", "slice",
-              "transpose", "rev", "pad", "copy", "copy_p", "stack", "split", "clamp", "reduce_max", "reduce_min", "cummax", "cummin", "optimization_barrier",
-              "sharding_constraint", "reshard", "reduce_and", "reduce_or"]:
+for _name in ["reduce_max", "reduce_min", "cummax", "cummin", "reduce_and", "reduce_or"]:
     _RULES[_name] = _monotone()
-_RULES["gather"] = _monotone(index_at=(1,))
-_RULES["scatter"] = _RULES["scatter-max"] = _RULES["scatter-min"] = _monotone(index_at=(1,))
-_RULES["dynamic_slice"] = _monotone(index_from=1)
-_RULES["dynamic_update_slice"] = _monotone(index_from=2)
+for _name in ["broadcast_in_dim", "reshape", "squeeze", "expand_dims", "concatenate", "slice",
+              "transpose", "rev", "pad", "copy", "copy_p", "stack", "split", "optimization_barrier",
+              "sharding_constraint", "reshard"]:
+    _RULES[_name] = _monotone(moves_flags=True)
+_RULES["gather"] = _monotone(index_at=(1,), moves_flags=True)
+_RULES["scatter"] = _monotone(index_at=(1,), moves_flags=True)
+_RULES["scatter-max"] = _RULES["scatter-min"] = _monotone(index_at=(1,))
+_RULES["dynamic_slice"] = _monotone(index_from=1, moves_flags=True)
+_RULES["dynamic_update_slice"] = _monotone(index_from=2, moves_flags=True)
+
+
+def _max_flags(a: Iv, b: Iv, lo, hi, is_max: bool):
+    """Open flags of max(a, b) (is_max) or min(a, b) with bounds lo, hi. For max, the upper end
+    is attained only if an operand reaching it attains it, the lower end only if both operands
+    can sit at it; min is the mirror image."""
+    def any_attains(bound, x_end, x_open, y_end, y_open):  # open iff each operand misses it
+        return ((x_end != bound) | jnp.asarray(x_open, bool)) & ((y_end != bound) | jnp.asarray(y_open, bool))
+
+    def one_misses(bound, x_end, x_open, y_end, y_open):  # open iff one operand misses it
+        return ((x_end == bound) & jnp.asarray(x_open, bool)) | ((y_end == bound) & jnp.asarray(y_open, bool))
+
+    if is_max:
+        return (one_misses(lo, a.lo, a.lo_open, b.lo, b.lo_open),
+                any_attains(hi, a.hi, a.hi_open, b.hi, b.hi_open))
+    return (any_attains(lo, a.lo, a.lo_open, b.lo, b.lo_open),
+            one_misses(hi, a.hi, a.hi_open, b.hi, b.hi_open))
 
 
 @_rule("max", "min")
 def _max_min(eqn, a, b):
     out = _monotone()(eqn, a, b)
-    return Iv(out.lo, out.hi, src=(eqn.primitive.name, a, b))
+    if all(x.lo_open is False and x.hi_open is False for x in (a, b)):
+        return Iv(out.lo, out.hi, src=(eqn.primitive.name, a, b))
+    lo_open, hi_open = _max_flags(a, b, out.lo, out.hi, eqn.primitive.name == "max")
+    return Iv(out.lo, out.hi, src=(eqn.primitive.name, a, b), lo_open=lo_open, hi_open=hi_open)
+
+
+@_rule("clamp")
+def _clamp(eqn, low, x, high):
+    """clamp(low, x, high) = min(max(x, low), high), flags by the max and min rules."""
+    out = _monotone()(eqn, low, x, high)
+    if x.lo_open is False and x.hi_open is False:
+        return out
+    m_lo, m_hi = jnp.maximum(x.lo, low.lo), jnp.maximum(x.hi, low.hi)
+    m_lo_open, m_hi_open = _max_flags(x, low, m_lo, m_hi, True)
+    m = Iv(m_lo, m_hi, lo_open=m_lo_open, hi_open=m_hi_open)
+    lo_open, hi_open = _max_flags(m, high, out.lo, out.hi, False)
+    return Iv(out.lo, out.hi, lo_open=lo_open, hi_open=hi_open)
 
 
 def _decide_tie(name, x, y):
@@ -659,24 +953,41 @@ def _xor(eqn, a, b):
     return Iv((a.lo & ~b.hi) | (~a.hi & b.lo), (a.hi & ~b.lo) | (~a.lo & b.hi))
 
 
+def _flag_array(flag, like):
+    return jnp.broadcast_to(jnp.asarray(flag, bool), jnp.shape(like))
+
+
 def _select(pred: Iv, cases: Sequence[Iv]) -> Iv:
     """select_n / cond: exact for a point predicate, else the hull of all possibly chosen cases
-    (and the result may jump where the predicate flips)."""
+    (and the result may jump where the predicate flips). An end of the hull is open where every
+    possibly chosen case either misses it or has it open."""
+    flagged = any(c.lo_open is not False or c.hi_open is not False for c in cases)
     if _is_point(pred):
         p = pred.lo
         lo = lax.select_n(p, *[c.lo for c in cases])
         hi = lo if all(_is_point(c) for c in cases) else lax.select_n(p, *[c.hi for c in cases])
-        return Iv(lo, hi)
+        if not flagged:
+            return Iv(lo, hi)
+        return Iv(lo, hi, lo_open=lax.select_n(p, *[_flag_array(c.lo_open, lo) for c in cases]),
+                  hi_open=lax.select_n(p, *[_flag_array(c.hi_open, hi) for c in cases]))
     plo, phi = pred.lo.astype(jnp.int32), pred.hi.astype(jnp.int32)
     lo = hi = None
     inconsistent = plo > phi  # only from NaN bounds upstream: take every case
+    oks = []
     for i, c in enumerate(cases):
         ok = ((plo <= i) & (phi >= i)) | inconsistent
+        oks.append(ok)
         l = jnp.where(ok, c.lo, _extreme(c.lo.dtype, True))
         h = jnp.where(ok, c.hi, _extreme(c.hi.dtype, False))
         lo = l if lo is None else jnp.minimum(lo, l)
         hi = h if hi is None else jnp.maximum(hi, h)
-    return Iv(lo, hi, _any_differs(plo, phi))
+    if not flagged or not _inexact(lo):
+        return Iv(lo, hi, _any_differs(plo, phi))
+    lo_open = hi_open = True
+    for ok, c in zip(oks, cases):
+        lo_open = lo_open & (~ok | (c.lo > lo) | jnp.asarray(c.lo_open, bool))
+        hi_open = hi_open & (~ok | (c.hi < hi) | jnp.asarray(c.hi_open, bool))
+    return Iv(lo, hi, _any_differs(plo, phi), None, lo_open, hi_open)
 
 
 @_rule("select_n")
@@ -794,7 +1105,7 @@ def _eval_eqn(eqn, ins, ctx):
             f"no interval rule for primitive {name!r} on non-point integer/bool intervals")
     out = rule(eqn, *ins)
     out = out if isinstance(out, list) else [out]
-    return [Iv(o.lo, o.hi, _or(o.disc, in_disc), o.src) for o in out]
+    return [o._replace(disc=_or(o.disc, in_disc)) for o in out]
 
 
 def _eval_jaxpr(jaxpr, consts, args, ctx):
@@ -807,12 +1118,12 @@ def _eval_jaxpr(jaxpr, consts, args, ctx):
             val = np.asarray(v.val, v.aval.dtype)
             key = (val.dtype.str, val.shape, val.tobytes())
             if key not in ctx.literals:
-                ctx.literals[key] = _point(jnp.asarray(val))
+                ctx.literals[key] = _constant(val)
             return ctx.literals[key]
         return env[v]
 
     for v, c in zip(jaxpr.constvars, consts):
-        env[v] = _point(c)
+        env[v] = _constant(c)
     env.update(zip(jaxpr.invars, args))
     for eqn in jaxpr.eqns:
         if all(isinstance(v, DropVar) for v in eqn.outvars):
@@ -825,22 +1136,42 @@ def _eval_jaxpr(jaxpr, consts, args, ctx):
     return [read(v) for v in jaxpr.outvars]
 
 
-def interval_eval(fn: Callable, lows, highs, track_magnitude: bool = False) -> IntervalResult:
+def interval_eval(fn: Callable, lows, highs, track_magnitude: bool = False, open_lows=None,
+                  open_highs=None) -> IntervalResult:
     """Interval-evaluate ``fn`` (any pytree output) over the box; see `natural_enclosure`.
 
-    Returns flattened output bounds, per-output discontinuity flags (scalar bools) and, when
-    ``track_magnitude``, the largest finite |bound| seen over all float intermediates."""
+    ``open_lows``/``open_highs``: optional per-argument bool arrays (or None / False): that end of
+    the argument's interval is almost surely not attained (a half-open state cell's upper face,
+    a noise box of a distribution with a density). Points (``lows[i] is highs[i]``) are closed
+    and must not be subnormal when traced (callers check their data).
+
+    Returns flattened output bounds, per-output discontinuity flags (scalar bools), when
+    ``track_magnitude`` the largest finite |bound| seen over all float intermediates, and the
+    outputs' open flags."""
     lows, highs = as_box(lows, highs)
     closed, out_shape = jax.make_jaxpr(fn, return_shape=True)(*lows)
     treedef = jax.tree_util.tree_structure(out_shape)
     ctx = _Ctx(track_magnitude)
-    args = [Iv(lo, hi) for lo, hi in zip(lows, highs)]
+    k = len(lows)
+    open_lows = [False] * k if open_lows is None else list(open_lows)
+    open_highs = [False] * k if open_highs is None else list(open_highs)
+    args = []
+    for lo, hi, lo_open, hi_open in zip(lows, highs, open_lows, open_highs):
+        if lo is hi:
+            iv = _point(lo) if isinstance(lo, jax.core.Tracer) else _constant(lo)
+        else:
+            flag = lambda f: False if f is None or f is False else jnp.asarray(f, bool)
+            iv = _sanitize(Iv(lo, hi, lo_open=flag(lo_open), hi_open=flag(hi_open)))
+        args.append(iv)
     ctx.see(args)
     outs = _eval_jaxpr(closed.jaxpr, closed.consts, args, ctx)
     dtypes = [v.aval.dtype for v in closed.jaxpr.outvars]
-    outs = [Iv(o.lo.astype(d), o.hi.astype(d), o.disc) for o, d in zip(outs, dtypes)]
+    outs = [Iv(o.lo.astype(d), o.hi.astype(d), o.disc, None,
+               _flag_array(o.lo_open, o.lo) & jnp.issubdtype(d, jnp.inexact),
+               _flag_array(o.hi_open, o.hi) & jnp.issubdtype(d, jnp.inexact)) for o, d in zip(outs, dtypes)]
     return IntervalResult([o.lo for o in outs], [o.hi for o in outs],
-                          [o.disc for o in outs], ctx.mag, treedef)
+                          [o.disc for o in outs], ctx.mag, treedef,
+                          [o.lo_open for o in outs], [o.hi_open for o in outs])
 
 
 def natural_enclosure(fn: Callable, lows: Sequence, highs: Sequence):
@@ -856,3 +1187,12 @@ def natural_enclosure(fn: Callable, lows: Sequence, highs: Sequence):
     if len(res.lo) != 1:
         raise ValueError(f"fn must return exactly one array, got {res.treedef}")
     return res.lo[0], res.hi[0]
+
+
+def natural_enclosure_open(fn: Callable, lows: Sequence, highs: Sequence, open_lows=None, open_highs=None):
+    """`natural_enclosure` with open ends: inputs' ``open_lows``/``open_highs`` as in
+    `interval_eval`; returns ``(lo, hi, lo_open, hi_open)``, the last two bool arrays of shape S."""
+    res = interval_eval(fn, lows, highs, open_lows=open_lows, open_highs=open_highs)
+    if len(res.lo) != 1:
+        raise ValueError(f"fn must return exactly one array, got {res.treedef}")
+    return res.lo[0], res.hi[0], res.lo_open[0], res.hi_open[0]

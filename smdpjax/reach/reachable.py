@@ -8,7 +8,8 @@ import jax.numpy as jnp
 from .centered import enclose
 
 
-def reachable_boxes(dynamics, x_low, x_high, actions, w_low, w_high, method: str = "both"):
+def reachable_boxes(dynamics, x_low, x_high, actions, w_low, w_high, method: str = "both", x_high_open=None,
+                    noise_open: bool = False):
     """Enclosures of Reach for every (state box, action, noise box) triple.
 
     Args:
@@ -17,18 +18,32 @@ def reachable_boxes(dynamics, x_low, x_high, actions, w_low, w_high, method: str
         actions: ``(A, m)`` inputs shared by all states, or ``(R, A, m)`` per state.
         w_low, w_high: ``(C, d)`` noise boxes (bounded).
         method: ``"natural"``, ``"centered"`` or ``"both"`` (their intersection).
+        x_high_open: optional ``(R, n)`` bool: the state box excludes its upper face there
+            (half-open cells). When given, the upper ends' open flags are returned too.
+        noise_open: the noise has a density, so no noise box attains its faces with positive
+            probability.
 
     Returns:
         ``(lo, hi)``, each ``(R, A, C, n)``, with ``f(x, u_a, w) in [lo, hi]`` for all x, w in
-        the boxes, rounding included.
+        the boxes, rounding included; with ``x_high_open``, also ``hi_open (R, A, C, n)``: the
+        next state is almost surely below ``hi`` there (see `interval_eval`).
     """
+    with_open = x_high_open is not None
 
-    def one(xl, xh, u, wl, wh):
-        return enclose(dynamics, (xl, u, wl), (xh, u, wh), method)
+    def one(xl, xh, xo, u, wl, wh):
+        if not with_open:
+            return enclose(dynamics, (xl, u, wl), (xh, u, wh), method)
+        w_open = jnp.full(wl.shape, bool(noise_open))
+        lo, hi, _, hi_open = enclose(dynamics, (xl, u, wl), (xh, u, wh), method,
+                                     open_lows=(False, False, w_open), open_highs=(xo, False, w_open),
+                                     with_open=True)
+        return lo, hi, hi_open
 
-    over_noise = jax.vmap(one, in_axes=(None, None, None, 0, 0))
-    over_actions = jax.vmap(over_noise, in_axes=(None, None, 0, None, None))
+    over_noise = jax.vmap(one, in_axes=(None, None, None, None, 0, 0))
+    over_actions = jax.vmap(over_noise, in_axes=(None, None, None, 0, None, None))
     actions = jnp.asarray(actions)
-    over_states = jax.vmap(over_actions, in_axes=(0, 0, 0 if actions.ndim == 3 else None, None, None))
-    return over_states(jnp.asarray(x_low), jnp.asarray(x_high), actions,
+    over_states = jax.vmap(over_actions, in_axes=(0, 0, 0 if with_open else None,
+                                                  0 if actions.ndim == 3 else None, None, None))
+    x_low = jnp.asarray(x_low)
+    return over_states(x_low, jnp.asarray(x_high), x_high_open, actions,
                        jnp.asarray(w_low), jnp.asarray(w_high))

@@ -18,9 +18,9 @@ def test_grids_of_one_geometry_share_the_compiled_stage_and_give_the_same_boxes(
     # same box and cells, another specification: labels differ, geometry does not
     second = sj.StateGrid([0, 0], [1, 1], 8, reach=[([0.5, 0.75], [1, 1])], avoid=[([0, 0], [0.25, 0.25])])
     other = sj.StateGrid([0, 0], [1, 2], 8, reach=[([0.75, 0.75], [1, 1])])
-    assert _chunk_fn(drift, first, "both") is _chunk_fn(drift, second, "both")
-    assert _chunk_fn(drift, first, "both") is not _chunk_fn(drift, other, "both")
-    assert _chunk_fn(drift, first, "both") is not _chunk_fn(drift, first, "natural")
+    assert _chunk_fn(drift, first, "both", True) is _chunk_fn(drift, second, "both", True)
+    assert _chunk_fn(drift, first, "both", True) is not _chunk_fn(drift, other, "both", True)
+    assert _chunk_fn(drift, first, "both", True) is not _chunk_fn(drift, first, "natural", True)
 
     a = compute_grid_clusters(system, first, noise)
     b = compute_grid_clusters(system, second, noise)
