@@ -14,9 +14,7 @@ on a GPU named H100, 4800 on an H200, and is left out on a CPU.
 
 from __future__ import annotations
 
-import argparse
 import time
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -25,7 +23,7 @@ import numpy as np
 import smdpjax as sj
 from smdpjax.abstraction import build, compute_grid_clusters
 
-from .common import environment, write_json
+from .common import argument_parser, write_result
 from .paper_table1 import parse_rows, row_spec
 from .table1 import case_study
 
@@ -85,12 +83,10 @@ def measure(row: int, repeats: int, quick: bool = False) -> dict:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argument_parser(__doc__, "bandwidth", repeats=20, repeats_help="timed backups (median reported)")
     parser.add_argument("--rows", default="16,28,40", help="Table 1 SMDP rows")
-    parser.add_argument("--repeats", type=int, default=20)
     parser.add_argument("--peak-gbs", type=float, default=None, help="the device's memory bandwidth, GB/s")
     parser.add_argument("--quick", action="store_true")
-    parser.add_argument("--out", type=Path, default=Path("results/bandwidth.json"))
     args = parser.parse_args(argv)
     peak = _peak(args.peak_gbs)
     results = []
@@ -106,7 +102,7 @@ def main(argv=None):
         print(f"{row:3d} {r['system']:12} {r['states']:6d} {shape:>18} {r['backup_ms']:9.3f} "
               f"{r['compulsory_bytes'] / 1e6:13.1f} {r['achieved_gbs']:7.1f} {r['achieved_with_table_gbs']:13.1f} "
               f"{bound:>12} {r['fused_backup_ms']:13.3f}", flush=True)
-    write_json(args.out, {"benchmark": "bandwidth", "environment": environment(), "peak_gbs": peak, "rows": results})
+    write_result("bandwidth", args, peak_gbs=peak, rows=results)
     print(f"wrote {args.out}")
 
 

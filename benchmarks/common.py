@@ -1,7 +1,14 @@
-"""Shared helpers for benchmark scripts: timing medians, JSON output, Monte Carlo checks."""
+"""Shared helpers for benchmark scripts: command lines, timing medians, JSON output, Monte Carlo checks.
+
+Every script starts its command line from ``argument_parser`` (its docstring as the help text,
+``--out results/<name>.json``, and ``--repeats`` / ``--tol`` where it times runs or iterates to a
+tolerance) and writes its results with ``write_result`` (``benchmark``, ``args`` and
+``environment`` first, then the script's own fields).
+"""
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import platform
@@ -60,3 +67,36 @@ def environment() -> dict:
 def write_json(path: Path, payload: dict) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(payload, indent=2, default=float))
+
+
+def argument_parser(doc: str, name: str, *, repeats: int | None = None, repeats_help: str | None = None,
+                    tol: float | None = None) -> argparse.ArgumentParser:
+    """The command line every benchmark script starts from.
+
+    Args:
+        doc: the script's module docstring, shown verbatim by ``--help``.
+        name: the script's name; ``--out`` defaults to ``results/<name>.json``.
+        repeats: add ``--repeats`` with this default (timed runs; the median is reported).
+        repeats_help: its help text.
+        tol: add ``--tol`` (the solvers' stopping tolerance) with this default.
+    """
+    parser = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", type=Path, default=Path(f"results/{name}.json"), help="JSON results file")
+    if repeats is not None:
+        parser.add_argument("--repeats", type=int, default=repeats,
+                            help=repeats_help or "timed runs after a compiling warm-up (median reported)")
+    if tol is not None:
+        parser.add_argument("--tol", type=float, default=tol, help="value iteration's stopping tolerance")
+    return parser
+
+
+def arguments(args: argparse.Namespace) -> dict:
+    """The parsed command line as strings, for the JSON record."""
+    return {k: str(v) for k, v in vars(args).items()}
+
+
+def write_result(name: str, args: argparse.Namespace, **payload) -> Path:
+    """Write ``{"benchmark": name, "args": ..., "environment": ..., **payload}`` to ``args.out``
+    (``payload`` may replace ``environment``, e.g. to add a peer tool's version); returns the path."""
+    write_json(args.out, {"benchmark": name, "args": arguments(args), "environment": environment(), **payload})
+    return args.out

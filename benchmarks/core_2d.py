@@ -3,14 +3,17 @@
 Prints, for every abstraction class (each built from the same partitions and reachable-set
 method): e_avg, abstraction and synthesis time (medians over ``--repeats`` runs after a
 compiling warm-up), memory, p_low/p_up averages over 100 initial cells, and the Monte Carlo check
-(1000 trajectories per initial cell).
+(1000 trajectories per initial cell). Writes the results to ``--out`` (JSON) and, beside it, a
+figure (``core_2d.png`` for the default ``--out``): each class's p_low heat map with a few
+closed-loop trajectories of its refined controller (as the paper's Fig. 2); ``--no-plot`` skips
+it, and it is skipped with a message where matplotlib is not installed (the ``dev`` and ``plot``
+extras have it).
 
-    python -m benchmarks.core_2d [--kinds imdp,smdp] [--cells 30] [--repeats 3] [--trajectories 1000]
+    python -m benchmarks.core_2d [--kinds imdp,smdp] [--cells 30] [--repeats 3] [--trajectories 1000] [--no-plot]
 """
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -18,7 +21,7 @@ import numpy as np
 
 import smdpjax as sj
 
-from .common import binomial_tolerance, environment, median, monte_carlo, timed, write_json
+from .common import argument_parser, binomial_tolerance, median, monte_carlo, timed, write_result
 
 
 def unicycle_2d(x, u, w):
@@ -36,28 +39,27 @@ def problem(cells: int = 30):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argument_parser(__doc__, "core_2d", repeats=3, tol=1e-6,
+                             repeats_help="timed runs per stage after a warm-up (median reported); 0: time the first run")
     parser.add_argument("--kinds", default="imdp,smdp",
                         help="comma-separated abstraction classes (imdp, 2imdp, mimdp, smdp); default: the quick pair")
     parser.add_argument("--cells", type=int, default=30, help="grid cells per dimension")
-    parser.add_argument("--repeats", type=int, default=3,
-                        help="timed runs per stage after a warm-up (median reported); 0: time the first run")
     parser.add_argument("--lp-backend", default="clarabel", choices=("clarabel", "highs"),
                         help="LP solver for the MI-MDP's multipliers")
     parser.add_argument("--initial", type=int, default=100, help="initial cells |S_0|")
     parser.add_argument("--trajectories", type=int, default=1000, help="Monte Carlo runs per initial cell")
-    parser.add_argument("--tol", type=float, default=1e-6)
-    parser.add_argument("--out", type=Path, default=Path("results/core_2d.json"))
+    parser.add_argument("--no-plot", action="store_true", help="do not draw the figure")
     args = parser.parse_args(argv)
 
     system, grid, noise = problem(args.cells)
     print(f"{system!r}\n{grid!r}\n{noise!r}\n")
     cells = sj.metrics.initial_cells(grid, args.initial, seed=0)
-    rows = []
+    rows, solutions = [], {}
     for kind in args.kinds.split(","):
         options = {"lp_backend": args.lp_backend} if kind == "mimdp" else {}
         abstraction, t_abs = timed(lambda: sj.abstract(system, grid, noise, kind, **options), args.repeats)
         solution, t_syn = timed(lambda: sj.synthesize(abstraction, tol=args.tol), args.repeats)
+        solutions[kind] = solution
         p_low, p_up = sj.metrics.average_bounds(solution, cells)
         sat, undecided = monte_carlo(system, grid, solution, cells, args.trajectories, seed=7, max_steps=1000)
         p_mc = float(sat.mean())
@@ -86,10 +88,46 @@ def main(argv=None):
         import json
         earlier = [r for r in json.loads(args.out.read_text()).get("rows", []) if r["kind"] not in args.kinds.split(",")]
         rows = earlier + rows
-    write_json(args.out, {"benchmark": "core_2d", "args": {k: str(v) for k, v in vars(args).items()},
-                          "environment": environment(), "rows": rows})
+    write_result("core_2d", args, rows=rows)
     print(f"\nwrote {args.out}")
+    if not args.no_plot:
+        figure = plot(system, grid, solutions, cells, args.out.with_suffix(".png"))
+        if figure is not None:
+            print(f"wrote {figure}")
     return rows
+
+
+def plot(system, grid, solutions: dict, cells, path: Path, trajectories: int = 8):
+    """p_low heat maps of ``solutions`` (class -> ``Solution``), one panel per class, with
+    ``trajectories`` closed-loop runs from the centres of the same initial cells in every panel;
+    written to ``path``. Returns the path, or ``None`` (with a message) without matplotlib."""
+    try:
+        import matplotlib
+    except ImportError:
+        print("matplotlib is not installed (pip install -e \".[dev]\" or \".[plot]\"): no figure drawn")
+        return None
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .paper_table1 import KIND_NAMES
+    from .table1_figures import p_low_panel
+
+    starts = np.random.default_rng(0).choice(np.asarray(cells), min(trajectories, len(cells)), replace=False)
+    x0 = np.asarray(grid.cell_centers(starts))
+    fig, axes = plt.subplots(1, len(solutions), figsize=(4.2 * len(solutions), 4), squeeze=False)
+    for i, (ax, (kind, solution)) in enumerate(zip(axes[0], solutions.items())):
+        image = p_low_panel(ax, grid, solution.lower, system, solution.policy, x0, steps=150)
+        if i:
+            ax.set_ylabel("")
+        mean = float(np.asarray(solution.lower)[:-1][grid.nonterminal].mean())
+        ax.set_title(f"{KIND_NAMES.get(kind, kind)}: mean p_low {mean:.3f}")
+    fig.colorbar(image, ax=axes[0].tolist(), shrink=0.85, label="$\\underline{p}$")
+    fig.suptitle(f"2-D unicycle, {'x'.join(map(str, grid.cells.tolist()))} cells: p_low and closed-loop "
+                 "trajectories (white: satisfied, red: not)")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return path
 
 
 if __name__ == "__main__":

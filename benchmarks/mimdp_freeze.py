@@ -14,8 +14,6 @@ the iteration). Writes ``--out`` (JSON).
 
 from __future__ import annotations
 
-import argparse
-from pathlib import Path
 
 import jax
 import numpy as np
@@ -23,7 +21,7 @@ import numpy as np
 from smdpjax import case_studies, synthesize
 from smdpjax.abstraction import build, compute_grid_clusters
 
-from .common import environment, median, timed, write_json
+from .common import argument_parser, median, timed, write_result
 
 
 def _lps_solved(mimdp) -> int:
@@ -32,11 +30,9 @@ def _lps_solved(mimdp) -> int:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argument_parser(__doc__, "mimdp_freeze", repeats=2,
+                             repeats_help="timed runs per mode after the first (median reported)", tol=1e-6)
     parser.add_argument("--sizes", default="30", help="comma-separated cells per axis of the 2-D unicycle")
-    parser.add_argument("--repeats", type=int, default=2)
-    parser.add_argument("--tol", type=float, default=1e-6)
-    parser.add_argument("--out", type=Path, default=Path("results/mimdp_freeze.json"))
     args = parser.parse_args(argv)
     results = []
     print(f"{'size':>4} {'|S|':>6} {'mode':8} {'median s':>9} {'runs s':>20} {'LPs':>8} {'backups':>8} "
@@ -64,7 +60,7 @@ def main(argv=None):
                   f"{r['backups']:8d} {d_low:13.1e} {d_up:12.1e}", flush=True)
         results.append(dict(size=size, states=study.state_grid.num_states, runs=runs, max_diff_lower=d_low,
                             max_diff_upper=d_up))
-        write_json(args.out, dict(environment=environment(), repeats=args.repeats, tol=args.tol, sizes=results))
+        write_result("mimdp_freeze", args, repeats=args.repeats, tol=args.tol, sizes=results)
     print(f"wrote {args.out}")
 
 

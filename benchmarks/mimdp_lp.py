@@ -14,10 +14,8 @@ Clarabel problem), threads and solver settings there.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import time
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -28,7 +26,7 @@ from smdpjax.abstraction import compute_grid_clusters
 from smdpjax.abstraction.lp import ClusterLPs
 from smdpjax.abstraction.mimdp import MIMDP, certified_min
 
-from .common import environment, median, write_json
+from .common import argument_parser, median, write_result
 from .core_2d import problem
 
 
@@ -129,13 +127,11 @@ def iterate(mimdp, v, steps):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argument_parser(__doc__, "mimdp_lp", repeats=3)
     parser.add_argument("--cells", type=int, default=30)
     parser.add_argument("--subset", type=int, default=48, help="LPs for the CVXPY loop and the sweeps")
-    parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--steps", type=int, default=4, help="value-iteration steps timed per backend")
     parser.add_argument("--threads", type=int, default=None, help="LP threads (default: auto)")
-    parser.add_argument("--out", type=Path, default=Path("results/mimdp_lp.json"))
     args = parser.parse_args(argv)
 
     system, grid, noise = problem(args.cells)
@@ -281,10 +277,8 @@ def main(argv=None):
               f"min {f['below_imdp_min']:.1e}; differs from {next(iter(full))} by <= {f['diff_to_first_backend']:.1e}; "
               f"statuses {f['statuses']}; multipliers clipped {f['multipliers_clipped']} "
               f"(max {f['multipliers_max']:.3f})")
-    write_json(args.out, {"benchmark": "mimdp_lp", "args": {k: str(x) for k, x in vars(args).items()},
-                          "environment": environment(), "load_average": list(__import__("os").getloadavg()),
-                          "build_seconds": t_build, "sizes": sizes, "full": full, "naive_cvxpy": naive,
-                          "sweep": sweep})
+    write_result("mimdp_lp", args, load_average=list(__import__("os").getloadavg()), build_seconds=t_build,
+                 sizes=sizes, full=full, naive_cvxpy=naive, sweep=sweep)
     print(f"\nwrote {args.out}")
 
 

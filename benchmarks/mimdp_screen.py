@@ -12,26 +12,22 @@ and SMDP values meet, and in greedy backups those of actions that cannot be the 
 
 from __future__ import annotations
 
-import argparse
 import time
-from pathlib import Path
 
 import numpy as np
 
 import smdpjax as sj
 from smdpjax.abstraction import build, compute_grid_clusters
 
-from .common import environment, write_json
+from .common import argument_parser, write_result
 from .paper_table1 import row_spec
 from .table1 import case_study
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argument_parser(__doc__, "mimdp_screen", tol=1e-6)
     parser.add_argument("--row", type=int, default=3, help="an MI-MDP row of Table 1")
     parser.add_argument("--modes", default="screen,plain", help="comma-separated: screen, plain")
-    parser.add_argument("--tol", type=float, default=1e-6)
-    parser.add_argument("--out", type=Path, default=Path("results/mimdp_screen.json"))
     args = parser.parse_args(argv)
     spec = row_spec(args.row)
     if spec.kind != "mimdp":
@@ -64,7 +60,7 @@ def main(argv=None):
         diff = max(np.abs(lo_a - lo_b)[nonterminal].max(), np.abs(up_a - up_b)[nonterminal].max())
         print(f"max |difference| of p_low, p_up between the modes: {diff:.2e}")
         runs["max_bound_difference"] = float(diff)
-    write_json(args.out, dict(row=args.row, environment=environment(), runs=runs))
+    write_result("mimdp_screen", args, row=args.row, runs=runs)
 
 
 if __name__ == "__main__":

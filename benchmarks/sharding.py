@@ -66,21 +66,18 @@ def run_child(devices: int, args, npz: Path) -> dict:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    from .common import argument_parser, write_result
+
+    parser = argument_parser(__doc__, "sharding", repeats=2, tol=1e-6)
     parser.add_argument("--cells", type=int, default=30, help="grid cells per dimension (2-D unicycle)")
     parser.add_argument("--kind", default="smdp", help="abstraction class")
     parser.add_argument("--devices", default="1,4", help="comma-separated device counts; the first is the reference")
-    parser.add_argument("--repeats", type=int, default=2, help="timed runs after a warm-up (median reported)")
     parser.add_argument("--horizon", type=int, default=100, help="finite horizon timed besides the unbounded one")
-    parser.add_argument("--tol", type=float, default=1e-6)
-    parser.add_argument("--out", type=Path, default=Path("results/sharding.json"))
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--npz", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
         return child(args)
-
-    from .common import environment, write_json
 
     counts = [int(d) for d in args.devices.split(",")]
     runs, arrays = [], []
@@ -117,8 +114,7 @@ def main(argv=None):
               + f"  {u['iterations']:4d}+{u['evaluation_iterations']:<5d}  "
               + f"{'yes' if all(run[t]['policy_equal_to_first'] for t in tasks) else 'NO':>11}  "
               + f"{diff[0]:.1e}, {diff[1]:.1e}")
-    write_json(args.out, {"benchmark": "sharding", "args": {k: str(v) for k, v in vars(args).items()},
-                          "environment": environment(), "runs": runs})
+    write_result("sharding", args, runs=runs)
     print(f"\nwrote {args.out}")
     return runs
 

@@ -16,9 +16,7 @@ float64 gather temporaries) can exceed a small machine's memory: a case whose es
 
 from __future__ import annotations
 
-import argparse
 import time
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -28,7 +26,7 @@ import smdpjax as sj
 from smdpjax.abstraction import SMDP, compute_grid_clusters
 from smdpjax.abstraction.clusters import index_dtype, max_lengths
 
-from .common import environment, median, timed, write_json
+from .common import argument_parser, median, timed, write_result
 from .core_2d import problem as unicycle_2d_problem
 
 
@@ -78,7 +76,7 @@ def run_case(name, system, grid, noise, repeats, limit_bytes):
         results[encoding] = np.asarray(out)
         rows.append(dict(base, bytes=smdp.nbytes, ms=1e3 * median(times), runs_ms=[1e3 * t for t in times],
                          repr=repr(smdp)))
-        del smdp
+        smdp = None  # free this encoding's arrays before building the next
     if len(results) == 2 and not np.array_equal(results["boxes"], results["members"]):
         raise AssertionError(f"{name}: the two encodings gave different backups")
     timed_rows = {r["encoding"]: r for r in rows if "ms" in r}
@@ -91,12 +89,11 @@ def run_case(name, system, grid, noise, repeats, limit_bytes):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argument_parser(__doc__, "smdp_backup", repeats=7,
+                             repeats_help="timed backups after the warm-up (median reported)")
     parser.add_argument("--quick", action="store_true", help="smaller sizes: 2-D at 30x30, 3-D at 15x15x15")
-    parser.add_argument("--repeats", type=int, default=7, help="timed backups after the warm-up (median reported)")
     parser.add_argument("--memory-limit-gb", type=float, default=6.0,
                         help="skip an encoding whose estimated memory exceeds this")
-    parser.add_argument("--out", type=Path, default=Path("results/smdp_backup.json"))
     args = parser.parse_args(argv)
 
     cases = [("2-D unicycle", unicycle_2d_problem, (30,) if args.quick else (30, 75)),
@@ -122,8 +119,7 @@ def main(argv=None):
               f"{r['encoding']:8} {r['bytes'] / 1e6:9.2f} {ms} {ratio} {speedup}")
     print("\nbytes x: member-list bytes / index-box bytes (the paper's memory metric, whole abstraction); "
           "speedup: member-list ms / index-box ms")
-    write_json(args.out, {"benchmark": "smdp_backup", "args": {k: str(v) for k, v in vars(args).items()},
-                          "environment": environment(), "rows": rows})
+    write_result("smdp_backup", args, rows=rows)
     print(f"wrote {args.out}")
     return rows
 

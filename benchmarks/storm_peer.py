@@ -19,7 +19,6 @@ Needs ``stormpy`` (``pip install -e ".[storm]"``).
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import tempfile
 import time
@@ -31,7 +30,7 @@ import numpy as np
 import smdpjax as sj
 from smdpjax import storm
 
-from .common import environment, write_json
+from .common import argument_parser, environment, write_result
 from .core_2d import problem
 
 UNIFORM_HALF_WIDTH = 0.63  # 2.1 standard deviations of the Gaussian of core_2d
@@ -108,12 +107,10 @@ def table(rows) -> str:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argument_parser(__doc__, "storm_peer", repeats=3, repeats_help="timed runs of each tool (median reported)")
     parser.add_argument("--cells", default="20,30", help="comma-separated grid sizes per dimension")
     parser.add_argument("--noise", default="gaussian,uniform", help="gaussian (dense rows) and/or uniform (bounded)")
     parser.add_argument("--horizon", type=int, default=100, help="K of the bounded until")
-    parser.add_argument("--repeats", type=int, default=3, help="timed runs of each tool (median reported)")
-    parser.add_argument("--out", type=Path, default=Path("results/storm_peer.json"))
     args = parser.parse_args(argv)
     import stormpy
 
@@ -132,8 +129,7 @@ def main(argv=None):
     print("\nours: p_low (max over actions of the robust inner problem) and p_up under the strategy, per step; "
           "ours p_low only (upper=False) and Storm: p_low and its strategy. Medians of alternating runs in one "
           "process.")
-    write_json(args.out, {"benchmark": "storm_peer", "args": {k: str(v) for k, v in vars(args).items()},
-                          "environment": {**environment(), "stormpy": stormpy.__version__}, "rows": rows})
+    write_result("storm_peer", args, environment={**environment(), "stormpy": stormpy.__version__}, rows=rows)
     print(f"wrote {args.out}")
     return rows
 

@@ -29,14 +29,14 @@ def _ok(results):
     return {row: r for row, r in results.items() if r.get("status") == "ok"}
 
 
-def _trajectories(study, policy, starts, steps, seed=3):
+def _trajectories(system, grid, policy, starts, steps, objective="reach_avoid", seed=3):
     import jax
 
     import smdpjax as sj
 
-    controller = sj.Controller(study.state_grid, policy)
-    sim = sj.simulate(study.system, controller, starts, jax.random.PRNGKey(seed), max_steps=steps,
-                      objective=study.objective, return_trajectories=True)
+    controller = sj.Controller(grid, policy)
+    sim = sj.simulate(system, controller, starts, jax.random.PRNGKey(seed), max_steps=steps,
+                      objective=objective, return_trajectories=True)
     return np.asarray(sim.trajectories), np.asarray(sim.satisfied)
 
 
@@ -47,6 +47,28 @@ def _draw_boxes(ax, boxes, color, dims=(0, 1)):
     for a, b in zip(lo, hi):
         ax.add_patch(Rectangle((a[dims[0]], b[dims[1]] * 0 + a[dims[1]]), b[dims[0]] - a[dims[0]],
                                b[dims[1]] - a[dims[1]], fill=False, edgecolor=color, lw=1.5))
+
+
+def p_low_panel(ax, grid, lower, system, policy, starts, *, objective="reach_avoid", steps=150, heading=None):
+    """One heat map: ``lower`` ((N+1,) p_low) over the grid's first two axes (a slice at
+    ``heading`` on a 3-D grid), avoid boxes white, reach boxes magenta, and closed-loop
+    trajectories of ``policy``'s refined controller from the points ``starts`` ((B, n); white:
+    satisfied, red: not). Returns the image (for a colour bar)."""
+    lower = np.asarray(lower)[:-1].reshape(tuple(grid.cells))
+    if grid.n == 3:
+        k = int(np.clip(np.floor((heading - grid.low[2]) / grid.width[2]), 0, grid.cells[2] - 1))
+        lower = lower[:, :, k]
+    image = ax.imshow(lower.T, origin="lower", extent=(grid.low[0], grid.high[0], grid.low[1], grid.high[1]),
+                      vmin=0, vmax=1, cmap="viridis")
+    _draw_boxes(ax, grid.avoid_boxes, "white")
+    _draw_boxes(ax, grid.reach_boxes, "magenta")
+    traj, ok = _trajectories(system, grid, policy, starts, steps, objective)
+    for b in range(traj.shape[1]):
+        ax.plot(traj[:, b, 0], traj[:, b, 1], color="white" if ok[b] else "red", lw=1)
+        ax.plot(traj[0, b, 0], traj[0, b, 1], "o", color="white", ms=3)
+    ax.set_xlabel("$p_x$")
+    ax.set_ylabel("$p_y$")
+    return image
 
 
 def heat_maps(results_dir: Path, results: dict, system: str, out: Path, heading: float = np.pi / 4):
@@ -63,29 +85,19 @@ def heat_maps(results_dir: Path, results: dict, system: str, out: Path, heading:
     grid = study.state_grid
     fig, axes = plt.subplots(1, len(rows), figsize=(4.2 * len(rows), 4), squeeze=False)
     rng = np.random.default_rng(0)
-    for ax, row in zip(axes[0], rows):
+    for i, (ax, row) in enumerate(zip(axes[0], rows)):
         data = np.load(results_dir / f"row_{row:02d}.npz")
-        lower = data["lower"][:-1].reshape(tuple(grid.cells))
-        if grid.n == 3:
-            k = int(np.clip(np.floor((heading - grid.low[2]) / grid.width[2]), 0, grid.cells[2] - 1))
-            lower = lower[:, :, k]
-        image = ax.imshow(lower.T, origin="lower", extent=(grid.low[0], grid.high[0], grid.low[1], grid.high[1]),
-                          vmin=0, vmax=1, cmap="viridis")
-        _draw_boxes(ax, grid.avoid_boxes, "white")
-        _draw_boxes(ax, grid.reach_boxes, "magenta")
         starts = data["initial_cells"][rng.choice(len(data["initial_cells"]), min(8, len(data["initial_cells"])),
                                                   replace=False)]
         x0 = np.array(grid.cell_centers(starts))
         if grid.n == 3:
             x0[:, 2] = heading
-        traj, ok = _trajectories(study, data["policy"], x0, steps=150)
-        for b in range(traj.shape[1]):
-            ax.plot(traj[:, b, 0], traj[:, b, 1], color="white" if ok[b] else "red", lw=1)
-            ax.plot(traj[0, b, 0], traj[0, b, 1], "o", color="white", ms=3)
+        image = p_low_panel(ax, grid, data["lower"], study.system, data["policy"], x0, objective=study.objective,
+                            steps=150, heading=heading)
+        if i:
+            ax.set_ylabel("")
         spec = row_spec(row)
         ax.set_title(f"row {row}: {KIND_NAMES[spec.kind]}\nmean p_low {data['lower'][:-1][grid.labels == 0].mean():.3f}")
-        ax.set_xlabel("$p_x$")
-        ax.set_ylabel("$p_y$")
     fig.colorbar(image, ax=axes[0].tolist(), shrink=0.85, label="$\\underline{p}$")
     slice_note = f", heading slice th = {heading:.2f}" if grid.n == 3 else ""
     fig.suptitle(f"{system}: p_low and closed-loop trajectories (white: satisfied, red: not){slice_note}")

@@ -20,10 +20,8 @@ bounds, rounding allowance included) and compared on mean p_low and e_avg.
 
 from __future__ import annotations
 
-import argparse
 import os
 import time
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -34,7 +32,7 @@ import smdpjax as sj
 from smdpjax import gradients
 from smdpjax.partition.noise_grid import warped_ball_edges
 
-from .common import environment, write_json
+from .common import argument_parser, write_result
 from .core_2d import problem
 
 
@@ -119,13 +117,12 @@ def evaluate(system, grid, theta, cells, tol: float = 1e-6):
 
 def main(argv=None):
     small = os.environ.get("SMDPJAX_SMALL") == "1"
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argument_parser(__doc__, "tune_noise_partition")
     parser.add_argument("--cells", type=int, default=16 if small else 20, help="state grid cells per dimension")
     parser.add_argument("--noise-cells", type=int, default=6 if small else 12, help="noise cells per axis")
     parser.add_argument("--initial", type=int, default=100, help="initial cells |S_0| (capped at S_nt)")
     parser.add_argument("--steps", type=int, default=3 if small else 40)
     parser.add_argument("--lr", type=float, default=0.05)
-    parser.add_argument("--out", type=Path, default=Path("results/tune_noise_partition.json"))
     args = parser.parse_args(argv)
 
     system, grid, _ = problem(args.cells)
@@ -139,8 +136,7 @@ def main(argv=None):
     print("tuned edges per axis:")
     for e in rows["tuned"]["edges"]:
         print("  " + " ".join(f"{x:+.3f}" for x in e))
-    write_json(args.out, {"benchmark": "tune_noise_partition", "args": {k: str(v) for k, v in vars(args).items()},
-                          "environment": environment(), "history": history, "results": rows})
+    write_result("tune_noise_partition", args, history=history, results=rows)
     print(f"\nwrote {args.out}")
     return history, rows
 

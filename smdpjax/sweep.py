@@ -1,25 +1,35 @@
-"""Batched parameter sweeps: many noise parameters, one jitted and vmapped synthesis call.
+"""Batched parameter sweeps: many noise parameters, one jitted synthesis call.
 
 The cluster structure (which states each cluster contains) depends on the dynamics, the state
 grid and the noise-grid edges only; the noise distribution and, for parameter values that
 happen to share a structure, the edges themselves enter through P_W(c) alone. So a batch of
-parameter values that share one structure is solved by ``jax.vmap`` over
+parameter values that share one structure is solved by mapping (``jax.vmap`` or ``lax.map``,
+see below) the function
 
     parameters -> (P_W(c), P_W(rest)) -> SMDP/IMDP -> p_low, strategy, p_up under it
 
-inside one ``jax.jit``. ``sweep`` recomputes the structure per value where it can change,
-groups values with identical structure, and runs one batched call per group.
+over the values inside one ``jax.jit``. ``sweep`` recomputes the structure per value where it
+can change, groups values with identical structure, and runs one batched call per group.
 
 Semantics match ``smdpjax.synthesize`` (unbounded reach-avoid): the optimal lower value and its
 strategy, the strategy's certified lower value and its upper value, each widened by the same
 rounding allowance. Under ``vmap`` the loop runs until the slowest value has converged (values
 that converged earlier are held fixed), so each result is the one ``synthesize`` gives.
 
-Cost: a vmapped loop does ``B x max(iterations)`` backups where a Python loop does
-``sum(iterations)``. The Bellman backups are gathers, which XLA:CPU does not speed up by
-batching, so on a CPU the batched call wins only where per-call overhead dominates (small
-abstractions) or iteration counts are alike (small ``batch_size`` chunks of neighbouring values);
-it is meant for accelerators, where one abstraction rarely fills the device.
+Strategy: a vmapped loop does ``B x max(iterations)`` backups where a Python loop does
+``sum(iterations)``, and under ``vmap`` every ``lax.cond`` of the solver (the policy sweeps
+after a converged greedy backup, the warm start's untried margins) runs both of its branches.
+The Bellman backups are gathers, which XLA:CPU does not speed up by batching. So the batched
+call picks its chunk size (``choose_batch_size``) by platform when ``batch_size`` is not given:
+
+* on a CPU, one value at a time (``batch_size=1``): the values run one after the other inside
+  the one jitted program (``lax.map`` over the values, no ``vmap``), which does exactly the
+  Python loop's ``sum(iterations)`` backups without its per-call dispatch;
+* on an accelerator, where one abstraction rarely fills the device, as many values side by side
+  as fit a memory budget (``auto_batch_size``), in sequential chunks beyond that.
+
+Every strategy gives the same results (each value's solve is the same function; a vmapped loop
+holds the values that have converged while the others go on).
 """
 
 from __future__ import annotations
@@ -38,7 +48,8 @@ from .gradients import ClusterStructure
 from .partition import NONTERMINAL
 from .synthesis import value_iteration
 
-__all__ = ["BatchSolution", "SweepResult", "solve", "batched_synthesis", "sweep"]
+__all__ = ["BatchSolution", "SweepResult", "solve", "batched_synthesis", "sweep", "auto_batch_size",
+           "choose_batch_size"]
 
 
 @pytree_dataclass
@@ -118,6 +129,36 @@ def auto_batch_size(structure: ClusterStructure, budget_bytes: int = 1 << 29) ->
     return max(1, int(budget_bytes // (8 * r * a * c * (k + 3))))
 
 
+def _platform(structure: ClusterStructure) -> str:
+    """The platform (``"cpu"``, ``"gpu"``, ``"tpu"``) holding the structure's arrays."""
+    try:
+        return next(iter(structure.members.devices())).platform
+    except Exception:  # not a concrete jax.Array (a tracer, a NumPy array): the default backend
+        return jax.default_backend()
+
+
+def choose_batch_size(structure: ClusterStructure, batch: int, platform: str | None = None) -> int:
+    """The chunk size ``batched_synthesis`` uses when ``batch_size`` is not given.
+
+    ``1`` on a CPU: the values are solved one after the other inside the jitted call
+    (``lax.map``, no ``vmap``), the Python loop's work without its per-call overhead. Batching
+    does not make the gathers of a backup cheaper per value on a CPU, a vmapped loop runs every
+    value of a chunk until the slowest has converged, and under ``vmap`` the solver's
+    ``lax.cond`` branches both run (``benchmarks/sweep.py`` measures all of them against the
+    loop). On an accelerator: ``auto_batch_size(structure)`` values side by side, at most
+    ``batch``.
+
+    Args:
+        structure: the shared cluster structure.
+        batch: the number of values.
+        platform: ``"cpu"``, ``"gpu"``, ``"tpu"``; default: where the structure's arrays live.
+    """
+    platform = _platform(structure) if platform is None else platform
+    if platform == "cpu":
+        return 1
+    return max(1, min(int(batch), auto_batch_size(structure)))
+
+
 @functools.partial(jax.jit, static_argnames=("probabilities", "kind", "max_iterations", "batch_size"))
 def _batched(structure, params, tol, probabilities, kind, max_iterations, batch_size):
     def one(prob, rest):
@@ -125,6 +166,8 @@ def _batched(structure, params, tol, probabilities, kind, max_iterations, batch_
 
     prob, rest = jax.vmap(probabilities)(params)
     batch = prob.shape[0]
+    if batch_size == 1:  # one value after the other, no vmap: each solve keeps its own loops and conds
+        return jax.lax.map(lambda pr: one(*pr), (prob, rest))
     if batch_size >= batch:
         return jax.vmap(one)(prob, rest)
     # Chunks of ``batch_size`` values run one after the other (lax.map), each vmapped; the last
@@ -141,7 +184,7 @@ def batched_synthesis(structure: ClusterStructure, probabilities: Callable, para
                       tol: float = 1e-6, max_iterations: int = 100_000,
                       batch_size: int | None = None) -> BatchSolution:
     """Probabilities and synthesis for a batch of parameter values sharing ``structure``: one
-    jitted call, vmapped over the values.
+    jitted call over all the values (vmapped chunks, or one value after the other).
 
     Args:
         structure: the frozen clusters (``gradients.cluster_structure``), shared by every value.
@@ -150,9 +193,11 @@ def batched_synthesis(structure: ClusterStructure, probabilities: Callable, para
             static argument: pass the same function object each time to reuse the compiled call.
         params: a PyTree whose leaves have a leading batch axis ``B`` (e.g. ``(64,)`` stds).
         kind: ``"smdp"`` or ``"imdp"``.
-        batch_size: values solved side by side; more run in sequential chunks of this size
-            inside the same call (bounds memory: one SMDP backup holds ``R*A*C_b`` floats per
-            value). Default ``auto_batch_size(structure)`` (~0.5 GB of temporaries).
+        batch_size: values solved side by side (vmapped); more run in sequential chunks of this
+            size inside the same call (bounds memory: one SMDP backup holds ``R*A*C_b`` floats
+            per value). ``1`` solves the values one after the other without ``vmap``. Default
+            ``choose_batch_size(structure, B)``: ``1`` on a CPU, where batching is slower than a
+            loop, else ``auto_batch_size(structure)`` (~0.5 GB of temporaries).
 
     Returns:
         ``BatchSolution`` with leading axis ``B``, equal to ``synthesize(abstraction, tol)`` per
@@ -162,7 +207,9 @@ def batched_synthesis(structure: ClusterStructure, probabilities: Callable, para
         raise ValueError(f"tol must be > 0, got {tol}")
     if kind not in ("smdp", "imdp"):
         raise ValueError(f"kind must be 'smdp' or 'imdp', got {kind!r}")
-    batch_size = auto_batch_size(structure) if batch_size is None else int(batch_size)
+    if batch_size is None:
+        batch_size = choose_batch_size(structure, int(np.shape(jax.tree.leaves(params)[0])[0]))
+    batch_size = int(batch_size)
     if batch_size < 1:
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
     return _batched(structure, params, jnp.asarray(tol, jnp.float64), probabilities, kind, int(max_iterations),

@@ -2,6 +2,7 @@
 
 import dataclasses
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -49,7 +50,7 @@ def assert_matches(batch, solutions):
 
 
 @pytest.mark.parametrize("kind", ["smdp", "imdp"])
-@pytest.mark.parametrize("batch_size", [None, 2])  # one vmapped batch; chunks of 2 with a padded last chunk
+@pytest.mark.parametrize("batch_size", [None, 2])  # the platform's choice; vmapped chunks of 2, the last one padded
 def test_batched_synthesis_matches_synthesize(structure, kind, batch_size):
     batch = S.batched_synthesis(structure, std_probabilities, STDS, kind=kind, tol=TOL, batch_size=batch_size)
     assert len(batch) == STDS.shape[0] and batch.lower.shape == (STDS.shape[0], GRID.num_states)
@@ -58,6 +59,31 @@ def test_batched_synthesis_matches_synthesize(structure, kind, batch_size):
     np.testing.assert_array_equal(np.asarray(batch.iterations), [s.iterations for s in solutions])
     mean_lower = np.asarray(batch.lower)[:, GRID.nonterminal].mean(axis=1)
     assert np.all(np.diff(mean_lower) < 0), "more noise, lower guarantee on this system"
+
+
+def test_strategy_choice(structure):
+    """On a CPU the values run one after the other (batch_size 1: lax.map, no vmap), elsewhere
+    vmapped chunks within the memory budget; by default the platform of the structure's arrays."""
+    budget = S.auto_batch_size(structure)
+    assert S.choose_batch_size(structure, 64, "cpu") == 1
+    assert S.choose_batch_size(structure, 64, "gpu") == min(64, budget)
+    assert S.choose_batch_size(structure, 3, "tpu") == min(3, budget)
+    expected = 1 if jax.default_backend() == "cpu" else min(5, budget)
+    assert S.choose_batch_size(structure, 5) == expected
+
+
+@pytest.mark.parametrize("kind", ["smdp", "imdp"])
+def test_sequential_equals_vmapped(structure, kind):
+    """Every strategy gives the same results: values one after the other (``batch_size=1``, the
+    CPU default) and all of them vmapped side by side."""
+    sequential = S.batched_synthesis(structure, std_probabilities, STDS, kind=kind, tol=TOL, batch_size=1)
+    vmapped = S.batched_synthesis(structure, std_probabilities, STDS, kind=kind, tol=TOL, batch_size=STDS.shape[0])
+    for name in ("lower", "upper", "lower_optimal", "rounding_allowance"):
+        np.testing.assert_allclose(np.asarray(getattr(sequential, name)), np.asarray(getattr(vmapped, name)),
+                                   rtol=0, atol=1e-15, err_msg=name)
+    for name in ("policy", "iterations", "evaluation_iterations", "converged"):
+        np.testing.assert_array_equal(np.asarray(getattr(sequential, name)), np.asarray(getattr(vmapped, name)),
+                                      err_msg=name)
 
 
 def test_solve_is_synthesize(structure):

@@ -148,7 +148,7 @@ def _chunk_fn_for(dynamics, geometry: tuple, method: str, noise_open: bool):
     # into every consumer, so in one program each output of ``index_boxes`` (start, length,
     # sink) and the NaN test recomputed the reachable sets (an optimization barrier is dropped on
     # the CPU). Materializing the boxes in between costs a write and a read of them instead.
-    # benchmarks/cpu_layouts.py (identical boxes): one program takes 2.0x as long on the 2-D
+    # benchmarks/cpu_layouts.py (retired; figures in docs/performance.md; identical boxes): one program takes 2.0x as long on the 2-D
     # unicycle, 0.98x on the 3-D unicycle and 0.73-1.18x on the 4-room model (cheap affine
     # dynamics) across runs: the split pays where the dynamics are costly to enclose.
     enclose = jax.jit(functools.partial(reachable_boxes, dynamics, method=method, noise_open=noise_open))

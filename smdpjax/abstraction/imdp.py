@@ -144,7 +144,7 @@ def interval_min(w, succ, lower, upper, upper_rest):
     # combined by explicit elementwise sums, which XLA on the CPU fuses into one vectorized
     # loop; a reduction over a short K axis ran 1.5-1.7x slower. Many successors: the reduction
     # over the last axis (explicit sums of hundreds of columns ran 1.5-2.9x slower there, a
-    # reduction over a leading axis 2.5x). Measured with benchmarks/cpu_layouts.py. The order of
+    # reduction over a leading axis 2.5x). Measured with the retired benchmarks/cpu_layouts.py (docs/performance.md). The order of
     # the sums does not matter for soundness (the allowance counts summands, see
     # ``summands_per_backup``).
     width = succ.shape[-1]

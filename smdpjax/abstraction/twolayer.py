@@ -276,7 +276,7 @@ _MATMUL_PREFIX_MAX = 128
 def _prefix_sums(x):
     """Inclusive prefix sums over the last axis. Short axes as a product with a triangular
     matrix of ones: on the CPU, ``cumsum`` over the capacities of the 2I-MDP rows of Table 1
-    (9-81 cells per block) took 1.0-1.9x as long (``benchmarks/two_layer.py``), and 3-6x on
+    (9-81 cells per block) took 1.0-1.9x as long (the retired ``benchmarks/two_layer.py``, docs/performance.md), and 3-6x on
     random (R, T, S) arrays with S = 18 and 81; over 256 entries the two cost the same."""
     size = x.shape[-1]
     if size > _MATMUL_PREFIX_MAX:

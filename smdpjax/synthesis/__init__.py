@@ -117,7 +117,8 @@ def verify(abstraction, policy=None, horizon: int | None = None, tol: float = 1e
             ``(T, N)``/``(T, N+1)`` per time step when ``horizon=T``. May be omitted for a
             single-action abstraction (``abstract(..., policy=table)`` abstracts the table's
             action only).
-        Other arguments as in ``synthesize``.
+
+    The other arguments are as in ``synthesize``.
     """
     v0 = _check(abstraction, horizon, tol, objective)
     n = abstraction.num_states
