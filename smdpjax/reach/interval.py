@@ -207,10 +207,17 @@ def _trig_bound(y, up: bool):
                                   default=lambda v: _nudge(v, up, _TRIG_REL))
 
 
+@functools.partial(jax.custom_jvp, nondiff_argnums=(1,))
 def _neighbour(s, up: bool):
-    """The next float64 above (up) or below s, for finite nonzero s (one step of its bits)."""
+    """The next float64 above (up) or below s, for finite nonzero s (one step of its bits).
+    Derivative 1, like `_outward`: the step is a constant to autodiff."""
     bits = lax.bitcast_convert_type(s, jnp.int64)
     return lax.bitcast_convert_type(bits + jnp.where((s > 0) == up, 1, -1).astype(jnp.int64), jnp.float64)
+
+
+@_neighbour.defjvp
+def _neighbour_jvp(up, primals, tangents):
+    return _neighbour(primals[0], up), tangents[0]
 
 
 _MANTISSA = (1 << 52) - 1

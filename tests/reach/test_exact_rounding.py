@@ -189,3 +189,11 @@ def test_open_flags_agree_with_sampling():
         assert not np.any(y == hi)
     if lo_open:
         assert not np.any(y == lo)
+
+
+def test_gradients_flow_through_the_directed_roundings():
+    # d/da of the upper bound of 0.1 x + sin(x) over [a, a + 0.3] is f'(a + 0.3) (f increasing there)
+    def upper(a):
+        return natural_enclosure(lambda x: 0.1 * x + jnp.sin(x) + x * x, (a,), (a + 0.3,))[1]
+    g = jax.grad(upper)(jnp.float64(0.2))
+    np.testing.assert_allclose(float(g), 0.1 + np.cos(0.5) + 2 * 0.5, rtol=1e-12)
