@@ -101,9 +101,8 @@ def index_boxes(grid: StateGrid, lo, hi, hi_open=None) -> IndexBoxes:
 def _last_cell(grid: StateGrid, d: int, hi, hi_open, top: int):
     """Index of the last cell an upper end reaches (``top`` for hi at ``high``): the cell
     containing hi, or the one below when hi lies exactly on its lower face and is open."""
-    e = jnp.asarray(grid.edges[d])
     j = jnp.where(hi >= grid.high[d], top, grid.dimension_index(jnp.clip(hi, grid.low[d], grid.high[d]), d))
-    return j - ((hi == e[j]) & hi_open).astype(jnp.int32)
+    return j - ((hi == grid.face(d, j)) & hi_open).astype(jnp.int32)
 
 
 def _flat_dimension(grid: StateGrid, d: int, lo, hi, hi_open):
@@ -157,7 +156,6 @@ def _periodic_end(grid: StateGrid, d: int, x, x_open, period: float, lower: bool
     periodic dimension, and whether it was decided exactly."""
     low, high = float(grid.low[d]), float(grid.high[d])
     cells = int(grid.cells[d])
-    e = jnp.asarray(grid.edges[d])
     m = jnp.where(x < low, -1, jnp.where(x > high if not lower else x >= high, 1, 0))
     shift = -m.astype(x.dtype) * period
     s = x + shift
@@ -167,7 +165,7 @@ def _periodic_end(grid: StateGrid, d: int, x, x_open, period: float, lower: bool
                & ((s == 0) | (jnp.abs(s) >= 2.0 ** -969)))
     at_top = s >= high
     k = jnp.where(at_top, cells, grid.dimension_index(jnp.clip(s, low, high), d))
-    on_face = s == e[k]
+    on_face = s == grid.face(d, k)
     if lower:
         k = k - (on_face & (err < 0)).astype(jnp.int32)
     else:

@@ -9,9 +9,12 @@ Flat cell indices are C order over ``cells``; index ``num_cells`` is the sink st
 
 Cells are half-open boxes: along dimension i, cell k is ``[e_k, e_{k+1})`` with the faces
 ``e = edges[i]`` held as explicit float64 arrays (``e_k`` is the float nearest to
-``low + k (high - low) / cells``), except that the last cell is closed at ``high`` (periodic
-dimensions: ``high`` is ``low`` again, in cell 0). So the cells partition the grid box exactly and
-"a point lies on a face" is decided by exact comparison with ``edges``.
+``low + k (high - low) / cells``, computed with exact rationals), except that the last cell is
+closed at ``high`` (periodic dimensions: ``high`` is ``low`` again, in cell 0). So the cells
+partition the grid box exactly and "a point lies on a face" is decided by exact comparison with
+``edges``; a face at a decimal such as 0.4 (30 cells over [0, 1]) is the float a user types.
+(Jitted code reads the faces from the table: XLA's float division is not correctly rounded on
+the CPU, so a face recomputed as ``k * span / cells`` may differ from it by an ulp.)
 
 Regions: reach boxes are closed, avoid boxes are open (their faces are safe), the grid box is
 closed. A cell is a reach cell iff its closure lies inside a reach box, an avoid cell iff it meets
@@ -164,16 +167,19 @@ class StateGrid:
         multi = xp.stack(xp.unravel_index(xp.asarray(index), tuple(self.cells.tolist())), axis=-1)
         return (multi + 1 == self.cells) & ~self.periodic
 
+    def face(self, d: int, k):
+        """``edges[d][k]`` for integer arrays ``k`` in ``[0, cells[d]]`` (jit-friendly)."""
+        return jnp.asarray(self.edges[d])[k]
+
     def dimension_index(self, x, d: int):
         """Cell index along dimension ``d`` of coordinates ``x: (...)`` already wrapped and inside
         ``[low[d], high[d]]``: the k with ``edges[d][k] <= x < edges[d][k + 1]`` (k = cells - 1 at
         ``high``). Exact: an estimate from the nominal width, corrected by comparison with the
-        edges (the estimate is off by at most one cell)."""
-        e = jnp.asarray(self.edges[d])
+        faces (the estimate is off by at most one cell)."""
         last = int(self.cells[d]) - 1
         guess = jnp.clip(jnp.floor((x - self.low[d]) / self.width[d]), 0, last).astype(jnp.int32)
-        guess = guess - (x < e[guess]).astype(jnp.int32)
-        guess = guess + (x >= e[jnp.minimum(guess + 1, last + 1)]).astype(jnp.int32)
+        guess = guess - (x < self.face(d, guess)).astype(jnp.int32)
+        guess = guess + (x >= self.face(d, jnp.minimum(guess + 1, last + 1))).astype(jnp.int32)
         return jnp.clip(guess, 0, last)
 
     def wrap(self, x):

@@ -171,8 +171,9 @@ def _float64(*xs) -> bool:
 
 
 def _decidable(x):
-    """Zero or large enough that every bit of x and of an error against it is a normal number."""
-    return (x == 0) | ((jnp.abs(x) >= _SMALL) & jnp.isfinite(x))
+    """Zero or large enough that every bit of x and of an error against it is a normal number
+    (infinities pass here; the sum's finiteness is tested once)."""
+    return (x == 0) | (jnp.abs(x) >= _SMALL)
 
 
 def _sum_error(a, b, s):
@@ -188,9 +189,9 @@ def _directed(s, err, ok, up: bool):
     safe side of the exact value, else its float neighbour on that side (the exact value lies
     strictly between the two), so the bound is the directed rounding of the exact value.
     Undecided errors widen. Returns (bound, strictly beyond the exact value)."""
-    safe = ok & ((err <= 0) if up else (err >= 0))
-    step = ok & ~safe & (jnp.abs(s) >= _SMALL)
-    bound = jnp.where(safe, s, jnp.where(step, _neighbour(s, up), _nudge(s, up)))
+    # With decided operands a rounded sum is at least 2^-970 in magnitude: its neighbour is normal.
+    safe = (err <= 0) if up else (err >= 0)
+    bound = jnp.where(ok, jnp.where(safe, s, _neighbour(s, up)), _nudge(s, up))
     return bound, ~(ok & (err == 0))
 
 
@@ -232,12 +233,13 @@ def _odd_significand(x):
     return 53 - tz, lax.shift_right_logical(m, tz)
 
 
-def _product_exact(x, y, p):
-    """fl(x * y) = p equals x * y exactly (0 * inf counts as the exact 0 of the convention)."""
+def _product_exact(x, y, p, sx=None, sy=None):
+    """fl(x * y) = p equals x * y exactly (0 * inf counts as the exact 0 of the convention).
+    ``sx``, ``sy``: the operands' `_odd_significand`, when already computed."""
     if not _float64(x, y, p):
         return jnp.zeros(jnp.shape(p), bool)
-    kx, ox = _odd_significand(x)
-    ky, oy = _odd_significand(y)
+    kx, ox = _odd_significand(x) if sx is None else sx
+    ky, oy = _odd_significand(y) if sy is None else sy
     k = kx + ky
     fits = (k <= 53) | ((k == 54) & (ox * oy < (1 << 53)))  # odd parts: k - 1 or k product bits
     info = jnp.finfo(jnp.float64)
@@ -491,10 +493,14 @@ def _extreme_of(values, exact, opens, up: bool):
 
 @_rule("mul")
 def _mul(eqn, a, b):
-    pairs = [(x, y, _or(ox, oy)) for x, ox in zip(_ends(a), _open_ends(a)) for y, oy in zip(_ends(b), _open_ends(b))]
-    ps = [_mul0(x, y) for x, y, _ in pairs]
-    exact = [_product_exact(x, y, p) for (x, y, _), p in zip(pairs, ps)]
-    opens = [o for _, _, o in pairs]
+    sig = _float64(a.lo, b.lo)
+    a_sig = [_odd_significand(x) if sig else None for x in _ends(a)]
+    b_sig = [_odd_significand(y) if sig else None for y in _ends(b)]
+    pairs = [(x, y, _or(ox, oy), sx, sy) for x, ox, sx in zip(_ends(a), _open_ends(a), a_sig)
+             for y, oy, sy in zip(_ends(b), _open_ends(b), b_sig)]
+    ps = [_mul0(x, y) for x, y, *_ in pairs]
+    exact = [_product_exact(x, y, p, sx, sy) for (x, y, _, sx, sy), p in zip(pairs, ps)]
+    opens = [o for _, _, o, *_ in pairs]
     lo, lo_open = _extreme_of(ps, exact, opens, False)
     hi, hi_open = _extreme_of(ps, exact, opens, True)
     return Iv(lo, hi, lo_open=lo_open, hi_open=hi_open)
@@ -510,8 +516,14 @@ def _div(eqn, a, b):
     qs = [x / y for x, y in pairs]
     # x / y = q exactly iff q * y is an exact product equal to x.
     exact = [_product_exact(q, y, q * y) & (q * y == x) & jnp.isfinite(q) for (x, y), q in zip(pairs, qs)]
-    lo, lo_w = _extreme_of(qs, exact, [False] * len(qs), False)
-    hi, hi_w = _extreme_of(qs, exact, [False] * len(qs), True)
+    # XLA's float division is not correctly rounded on the CPU (it may multiply by a rounded
+    # reciprocal), so an inexact quotient is widened by the generous `_nudge`, not one float step.
+    lo = functools.reduce(jnp.minimum, qs)
+    hi = functools.reduce(jnp.maximum, qs)
+    lo_exact = functools.reduce(jnp.logical_and, [~(q == lo) | e for q, e in zip(qs, exact)])
+    hi_exact = functools.reduce(jnp.logical_and, [~(q == hi) | e for q, e in zip(qs, exact)])
+    lo, lo_w = _keep_exact(lo_exact, lo, _nudge(lo, False))
+    hi, hi_w = _keep_exact(hi_exact, hi, _nudge(hi, True))
     out = Iv(lo, hi, lo_open=lo_w, hi_open=hi_w)
     nan_a = jnp.isnan(a.lo) | jnp.isnan(a.hi)
     return Iv(jnp.where(has0, jnp.where(nan_a, jnp.nan, -jnp.inf), out.lo),
