@@ -22,13 +22,59 @@ class System:
         actions: ``(|A|, m)`` array; row ``a`` is the input of action index ``a``
             (a 1-D array is read as ``|A|`` scalar inputs).
         noise: the distribution P_W of the i.i.d. disturbance ``w``.
+        g, B: set by ``System.additive`` (``None`` otherwise): the system is
+            ``f(x, u, w) = g(x, u) + B w`` with ``B (n, d)`` constant, which the direct IMDP
+            bounds (``abstract(..., bounds="direct")``) integrate exactly.
     """
 
     dynamics: Callable
     actions: np.ndarray
     noise: Distribution
+    g: Callable | None = None
+    B: np.ndarray | None = None
+
+    @classmethod
+    def additive(cls, g: Callable, B=None, *, actions, noise: Distribution) -> "System":
+        """The system ``x' = g(x, u) + B w`` (additive noise with a constant matrix ``B``).
+
+        Args:
+            g: ``g(x (n,), u (m,)) -> (n,)``, JAX-traceable, float64.
+            B: ``None`` (identity, ``n = d``), a scalar (``B I``), a ``(d,)`` diagonal, or an
+                ``(n, d)`` matrix.
+            actions, noise: as for ``System``.
+
+        Returns an ordinary ``System`` (``dynamics = g(x, u) + B w``, so every abstraction class,
+        ``simulate`` and the Lemma 1 bounds work as usual) that also records ``g`` and ``B``.
+        """
+        if not callable(g):
+            raise TypeError(f"g must be callable, got {type(g).__name__}")
+        if not isinstance(noise, Distribution):
+            raise TypeError(f"noise must be a smdpjax Distribution (Gaussian, Uniform, ...), got {noise!r}")
+        d = noise.dim
+        matrix = np.eye(d) if B is None else np.array(B, dtype=np.float64)  # a copy: frozen below
+        if matrix.ndim == 0:
+            matrix = matrix * np.eye(d)
+        elif matrix.ndim == 1:
+            if matrix.shape != (d,):
+                raise ValueError(f"a 1-D B is the diagonal and must have length d = {d} (the noise "
+                                 f"dimension), got {matrix.shape}")
+            matrix = np.diag(matrix)
+        if matrix.ndim != 2 or matrix.shape[1] != d:
+            raise ValueError(f"B must be None, a scalar, a ({d},) diagonal or an (n, {d}) matrix for noise of "
+                             f"dimension {d}, got shape {np.shape(B)}")
+        if not np.all(np.isfinite(matrix)):
+            raise ValueError("B must be finite")
+        matrix.setflags(write=False)
+        return cls(_additive_dynamics(g, matrix), actions, noise, g=g, B=matrix)
+
+    @property
+    def is_additive(self) -> bool:
+        """Declared by ``System.additive`` (``g`` and ``B`` are known)."""
+        return self.g is not None and self.B is not None
 
     def __post_init__(self):
+        if (self.g is None) != (self.B is None):
+            raise ValueError("g and B go together (use System.additive to declare x' = g(x, u) + B w)")
         if not callable(self.dynamics):
             raise TypeError(f"dynamics must be callable, got {type(self.dynamics).__name__}")
         if not isinstance(self.noise, Distribution):
@@ -80,6 +126,27 @@ class System:
     def __repr__(self):
         name = getattr(self.dynamics, "__name__", type(self.dynamics).__name__)
         return f"System(dynamics={name}, |A|={self.num_actions}, m={self.actions.shape[1]}, noise={self.noise!r})"
+
+
+def _additive_dynamics(g, B: np.ndarray):
+    """``f(x, u, w) = g(x, u) + B w``. One nonzero per row (a diagonal or a permutation times a
+    diagonal): ``b * w[perm]``, elementwise, so that the Lemma 1 enclosures and the samples see
+    no sums of zero terms; identity: ``g + w``."""
+    one_per_row = np.count_nonzero(B, axis=1) == 1
+    if np.all(one_per_row):
+        perm = np.argmax(B != 0, axis=1)
+        scale = B[np.arange(B.shape[0]), perm]
+        if B.shape[0] == B.shape[1] and np.array_equal(perm, np.arange(B.shape[0])) and np.all(scale == 1):
+            def dynamics(x, u, w):
+                return g(x, u) + w
+        else:
+            def dynamics(x, u, w):
+                return g(x, u) + jnp.asarray(scale) * w[perm]
+    else:
+        def dynamics(x, u, w):
+            return g(x, u) + jnp.asarray(B) @ w
+    dynamics.__name__ = f"{getattr(g, '__name__', 'g')}_plus_Bw"
+    return dynamics
 
 
 def _spec(a) -> jax.ShapeDtypeStruct:

@@ -61,6 +61,21 @@ def validate(system: System, grid: StateGrid, noise_grid: NoiseGrid) -> np.ndarr
     return rows
 
 
+def policy_actions(system: System, grid: StateGrid, rows: np.ndarray, policy=None) -> np.ndarray:
+    """The inputs to abstract: ``(A, m)`` all actions, or with a fixed ``policy`` (``(N,)``
+    action index per cell) ``(R, 1, m)``, the policy's action of each row. Checks the policy."""
+    actions = np.asarray(system.actions)
+    if policy is None:
+        return actions
+    policy = np.asarray(policy)
+    if policy.shape not in ((grid.num_cells,), (grid.num_states,)) or not np.issubdtype(policy.dtype, np.integer):
+        raise ValueError(f"policy must be ({grid.num_cells},) integer action indices, got {policy.shape} "
+                         f"{policy.dtype}")
+    if np.any(policy < 0) or np.any(policy >= system.num_actions):
+        raise ValueError(f"policy entries must lie in [0, {system.num_actions})")
+    return actions[policy[rows]][:, None, :]
+
+
 def compute_grid_clusters(system: System, grid: StateGrid, noise_grid: NoiseGrid, *, method: str = "both",
                           policy=None, progress: bool = False, mesh=None) -> GridClusters:
     """Reachable boxes of all (non-terminal cell, action, bounded noise cell) triples, snapped to
@@ -77,15 +92,7 @@ def compute_grid_clusters(system: System, grid: StateGrid, noise_grid: NoiseGrid
     if method not in ("natural", "centered", "both"):
         raise ValueError(f"unknown reachable-set method {method!r}; expected 'natural', 'centered' or 'both'")
     rows = validate(system, grid, noise_grid)
-    actions = np.asarray(system.actions)
-    if policy is not None:
-        policy = np.asarray(policy)
-        if policy.shape not in ((grid.num_cells,), (grid.num_states,)) or not np.issubdtype(policy.dtype, np.integer):
-            raise ValueError(f"policy must be ({grid.num_cells},) integer action indices, got {policy.shape} "
-                             f"{policy.dtype}")
-        if np.any(policy < 0) or np.any(policy >= system.num_actions):
-            raise ValueError(f"policy entries must lie in [0, {system.num_actions})")
-        actions = actions[policy[rows]][:, None, :]  # (R, 1, m)
+    actions = policy_actions(system, grid, rows, policy)
     prob, prob_rest = noise_grid.probabilities(system.noise)
     w_lo, w_hi = noise_grid.boxes()
     per_row = (1 if policy is not None else system.num_actions) * noise_grid.num_bounded

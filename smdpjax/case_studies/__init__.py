@@ -9,13 +9,19 @@ for Monte Carlo validation with ``simulate``.
 * ``temperature(rooms)``: n-room heating with multiplicative noise and a look-up-table
   controller, 15-step safety (rows 29-40).
 
+Beyond the paper:
+
+* ``robot_2d(cells)``: IMPaCT's 2-D robot (additive Gaussian noise, 441 actions), the benchmark of
+  the direct IMDP bounds (``abstract(..., bounds="direct")``, ``benchmarks/direct_imdp.py``).
+
 These are reconstructions: the paper does not print its systems' equations. Compare with the
 paper on sizes, timings, memory and the ordering of e_avg between classes, not on exact values.
 """
 
 from .case_study import CaseStudy
+from .robot_2d import robot_2d
 from .temperature import temperature
 from .unicycle_2d import unicycle_2d
 from .unicycle_3d import unicycle_3d
 
-__all__ = ["CaseStudy", "unicycle_2d", "unicycle_3d", "temperature"]
+__all__ = ["CaseStudy", "unicycle_2d", "unicycle_3d", "temperature", "robot_2d"]
