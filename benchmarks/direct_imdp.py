@@ -55,8 +55,8 @@ def integrator_drift(x, u):
 
 def problem(name: str):
     """``(system, grid, noise_grid, reach_method)`` of a benchmark problem."""
-    if name == "unicycle":
-        study = unicycle_2d(30)
+    if name.startswith("unicycle"):  # unicycle (30x30), unicycle45, unicycle60, unicycle75: Table 1's grids
+        study = unicycle_2d(int(name[len("unicycle"):] or 30))
         system = sj.System.additive(unicycle_drift, 0.1, actions=study.system.actions, noise=study.system.noise)
         return system, study.state_grid, study.noise_grid, study.reach_method
     if name == "robot":
@@ -141,7 +141,7 @@ def main(argv=None):
     parser = argument_parser(__doc__, "direct_imdp", repeats=0, tol=1e-6,
                              repeats_help="timed runs per stage after a warm-up (median reported); 0: time the "
                                           "first run, compilation included")
-    parser.add_argument("--problems", default="unicycle,robot", help="comma-separated: unicycle, robot, integrator4d")
+    parser.add_argument("--problems", default="unicycle,robot", help="comma-separated: unicycle (30x30), unicycle45, unicycle60, unicycle75, robot, integrator4d")
     parser.add_argument("--kinds", default="direct,imdp,smdp", help="comma-separated: direct, imdp, smdp")
     parser.add_argument("--threshold", type=float, default=1e-12,
                         help="listing threshold of the direct IMDP (every problem but the robot)")
