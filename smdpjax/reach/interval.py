@@ -222,7 +222,6 @@ def _neighbour_jvp(up, primals, tangents):
 
 
 _MANTISSA = (1 << 52) - 1
-_HIDDEN = 1 << 52
 
 
 def _product_exact(x, y, p):
@@ -1203,12 +1202,3 @@ def natural_enclosure(fn: Callable, lows: Sequence, highs: Sequence):
     if len(res.lo) != 1:
         raise ValueError(f"fn must return exactly one array, got {res.treedef}")
     return res.lo[0], res.hi[0]
-
-
-def natural_enclosure_open(fn: Callable, lows: Sequence, highs: Sequence, open_lows=None, open_highs=None):
-    """`natural_enclosure` with open ends: inputs' ``open_lows``/``open_highs`` as in
-    `interval_eval`; returns ``(lo, hi, lo_open, hi_open)``, the last two bool arrays of shape S."""
-    res = interval_eval(fn, lows, highs, open_lows=open_lows, open_highs=open_highs)
-    if len(res.lo) != 1:
-        raise ValueError(f"fn must return exactly one array, got {res.treedef}")
-    return res.lo[0], res.hi[0], res.lo_open[0], res.hi_open[0]

@@ -8,7 +8,7 @@ import mpmath
 import numpy as np
 import pytest
 
-from smdpjax.reach.interval import interval_eval, natural_enclosure, natural_enclosure_open
+from smdpjax.reach.interval import interval_eval, natural_enclosure
 
 
 def enclosure(fn, *args):
