@@ -71,49 +71,101 @@ def index_boxes(grid: StateGrid, lo, hi, hi_open=None) -> IndexBoxes:
     periodic dimension a box that does not lie within ``[low, high]`` is shifted by the period
     with rounding, so there cells are taken as closed and grown by ``INDEX_SLACK``.
     """
-    hi_open = jnp.zeros(jnp.shape(hi), bool) if hi_open is None else jnp.asarray(hi_open, bool)
-    # Subnormal ends (compared as 0 by XLA on the CPU) rounded outward to 0 or +-tiny.
-    tiny = float(np.finfo(np.float64).tiny)
-    sub_lo, sub_hi = _subnormal(lo), _subnormal(hi)
-    lo = jnp.where(sub_lo, jnp.where(jnp.signbit(lo), -tiny, 0.0), lo)
-    hi_open = hi_open | sub_hi
-    hi = jnp.where(sub_hi, jnp.where(jnp.signbit(hi), 0.0, tiny), hi)
-    starts, lengths, leaves = [], [], []
+    return decode_boxes(dimension_codes(grid, lo, hi, hi_open))
+
+
+# A dimension's (first cell, number of cells, leaves the grid box) packed into one int64.
+_LENGTH_SHIFT, _LEAVE_SHIFT = 31, 62
+
+
+def dimension_codes(grid: StateGrid, lo, hi, hi_open=None, *, normal_ends: bool = False):
+    """``(n, *B)`` int64: each dimension's part of `index_boxes`, packed (`decode_boxes` undoes
+    it), for ends ``lo, hi, hi_open``: ``(*B, n)`` arrays, or ``(n, *B)`` ones passed as
+    sequences of n arrays ``(*B,)`` (the faster layout: each dimension contiguous).
+
+    Entry ``[d]`` depends on dimension d alone, so XLA computes each once; the cross-dimension
+    step (a box that misses the grid in one dimension misses it altogether) is left to
+    `decode_boxes`. Compiled apart from it, the snapping runs once per box instead of once per
+    output (XLA on the CPU fuses a producer into every consumer).
+
+    ``normal_ends=True`` promises that no end is subnormal, which skips their rounding to 0 or
+    +-tiny (a third of the cost): true of `reachable_boxes`, whose inputs are made normal and
+    whose arithmetic flushes subnormal results to zero where comparisons read them as zero
+    (XLA on the CPU; elsewhere subnormals compare exactly and need no rounding anyway)."""
+    def by_dimension(x):
+        return list(x) if isinstance(x, (list, tuple)) else [x[..., d] for d in range(grid.n)]
+
+    los, his = by_dimension(lo), by_dimension(hi)
+    opens = [jnp.zeros(jnp.shape(h), bool) for h in his] if hi_open is None else by_dimension(hi_open)
+    codes = []
     for d in range(grid.n):
-        args = (grid, d, lo[..., d], hi[..., d], hi_open[..., d])
+        ends = (los[d], his[d], jnp.asarray(opens[d], bool))
+        args = (grid, d, *(ends if normal_ends else _normal_ends(*ends)))
         if grid.periodic[d]:
             start, length = _periodic_dimension(*args)
             leave = jnp.zeros(jnp.shape(start), bool)
         else:
             start, length, leave = _flat_dimension(*args)
-        starts.append(start)
-        lengths.append(length)
-        leaves.append(leave)
-    start, length = jnp.stack(starts, axis=-1), jnp.stack(lengths, axis=-1)
-    sink = functools.reduce(jnp.logical_or, leaves)
-    # A box that misses the grid in one dimension misses it altogether.
-    empty = jnp.any(length == 0, axis=-1, keepdims=True)
-    length = jnp.where(empty, 0, length)
-    start = jnp.where(empty, 0, start)
-    return IndexBoxes(start=start.astype(jnp.int32), length=length.astype(jnp.int32), sink=sink | empty[..., 0])
+        codes.append(start.astype(jnp.int64) | (length.astype(jnp.int64) << _LENGTH_SHIFT)
+                     | (leave.astype(jnp.int64) << _LEAVE_SHIFT))
+    return jnp.stack(codes)
 
 
-def _last_cell(grid: StateGrid, d: int, hi, hi_open, top: int):
-    """Index of the last cell an upper end reaches (``top`` for hi at ``high``): the cell
-    containing hi, or the one below when hi lies exactly on its lower face and is open."""
-    j = jnp.where(hi >= grid.high[d], top, grid.dimension_index(jnp.clip(hi, grid.low[d], grid.high[d]), d))
-    return j - ((hi == grid.face(d, j)) & hi_open).astype(jnp.int32)
+def _normal_ends(lo, hi, hi_open):
+    """Subnormal ends (compared as 0 by XLA on the CPU) rounded outward to 0 or +-tiny."""
+    tiny = float(np.finfo(np.float64).tiny)
+    sub_lo, sub_hi = _subnormal(lo), _subnormal(hi)
+    lo = jnp.where(sub_lo, jnp.where(jnp.signbit(lo), -tiny, 0.0), lo)
+    hi = jnp.where(sub_hi, jnp.where(jnp.signbit(hi), 0.0, tiny), hi)
+    return lo, hi, hi_open | sub_hi
+
+
+def decode_boxes(codes) -> IndexBoxes:
+    """`IndexBoxes` (leading shape ``B``) from `dimension_codes` ``(n, *B)``."""
+    mask = (1 << _LENGTH_SHIFT) - 1
+    lengths = [((c >> _LENGTH_SHIFT) & mask).astype(jnp.int32) for c in codes]
+    empty = functools.reduce(jnp.logical_or, [n == 0 for n in lengths])
+    sink = functools.reduce(jnp.logical_or, [(c >> _LEAVE_SHIFT) != 0 for c in codes]) | empty
+    start = jnp.stack([jnp.where(empty, 0, (c & mask).astype(jnp.int32)) for c in codes], axis=-1)
+    return IndexBoxes(start=start, length=jnp.stack([jnp.where(empty, 0, n) for n in lengths], axis=-1), sink=sink)
+
+
+def snapping_end(hi, hi_open, high):
+    """``(*B, n)`` upper ends that `index_boxes` snaps with the closed rule exactly as it snaps
+    ``hi`` with ``hi_open`` on a grid whose box ends at ``high (n,)``: the float below hi where hi
+    is open. No face lies strictly between two neighbouring floats, so the values below hi meet
+    the same cells as that float; the one exception is hi just above ``high`` (the grid box is
+    closed there, the values between reach the sink), where hi is kept, as it is where
+    subnormal (`index_boxes` rounds those outward itself).
+
+    Lets the enclosure hand over one array instead of two (XLA on the CPU recomputes the whole
+    enclosure once per output). Not for periodic dimensions: their ends are shifted by the
+    period, and a face can lie between the shifted neighbours."""
+    tiny = float(np.finfo(np.float64).tiny)
+    bits = jax.lax.bitcast_convert_type(hi, jnp.int64)
+    below = jax.lax.bitcast_convert_type(bits + jnp.where(hi > 0, -1, 1).astype(jnp.int64), jnp.float64)
+    # At 0 the float below is subnormal (read as 0 on the CPU): -tiny, and no face lies between.
+    below = jnp.where(hi == 0, -tiny, below)
+    above_high = jnp.asarray(np.nextafter(np.asarray(high, np.float64), np.inf))
+    return jnp.where(hi_open & jnp.isfinite(hi) & (hi != above_high) & ~_subnormal(hi), below, hi)
+
+
+def _last_cell(grid: StateGrid, d: int, hi, hi_open):
+    """Index of the last cell an upper end reaches (the last cell for hi at or above ``high``):
+    the cell containing hi, or the one below when hi lies exactly on its lower face and is open."""
+    j, on_face = grid.dimension_cell(jnp.clip(hi, grid.low[d], grid.high[d]), d)
+    return j - (on_face & hi_open).astype(jnp.int32)
 
 
 def _flat_dimension(grid: StateGrid, d: int, lo, hi, hi_open):
     """(first cell, number of cells, leaves the grid box) along a non-periodic dimension."""
     low, high = grid.low[d], grid.high[d]
     first = grid.dimension_index(jnp.clip(lo, low, high), d)
-    last = _last_cell(grid, d, hi, hi_open, int(grid.cells[d]) - 1)
+    last = _last_cell(grid, d, hi, hi_open)
     # lo inside the grid: the box meets lo's cell whatever the flags say (an open end equal to
     # lo would make the box a null set; counting the cell is the safe side).
     last = jnp.where(lo >= low, jnp.maximum(last, first), last)
-    meets = (lo <= high) & (hi >= low) & (last >= first)
+    meets = (lo <= high) & (jnp.maximum(hi, lo) >= low) & (last >= first)  # max: `snapping_end` of a null box
     length = jnp.where(meets, last - first + 1, 0)
     return first, length, (lo < low) | (hi > high)
 
@@ -164,8 +216,9 @@ def _periodic_end(grid: StateGrid, d: int, x, x_open, period: float, lower: bool
     decided = (((x == 0) | (jnp.abs(x) >= 2.0 ** -969)) & (s >= low) & (s <= high)
                & ((s == 0) | (jnp.abs(s) >= 2.0 ** -969)))
     at_top = s >= high
-    k = jnp.where(at_top, cells, grid.dimension_index(jnp.clip(s, low, high), d))
-    on_face = s == grid.face(d, k)
+    k, on_face = grid.dimension_cell(jnp.clip(s, low, high), d)
+    k = jnp.where(at_top, cells, k)
+    on_face = jnp.where(at_top, s == high, on_face)
     if lower:
         k = k - (on_face & (err < 0)).astype(jnp.int32)
     else:

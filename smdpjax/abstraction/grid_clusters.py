@@ -17,7 +17,7 @@ import numpy as np
 from ..partition import NoiseGrid, StateGrid
 from ..reach import reachable_boxes
 from ..system import System
-from .clusters import IndexBoxes, index_boxes
+from .clusters import IndexBoxes, decode_boxes, dimension_codes, snapping_end
 
 # Reachable boxes per chunk: bounds peak memory (a few hundred MB of float64 temporaries).
 BOXES_PER_CHUNK = 1 << 19
@@ -146,26 +146,43 @@ def _chunk_fn(dynamics, grid: StateGrid, method: str, noise_open: bool):
     return _chunk_fn_for(dynamics, geometry, method, noise_open)
 
 
+_decode = jax.jit(decode_boxes)
+
+
 @functools.lru_cache(maxsize=32)
 def _chunk_fn_for(dynamics, geometry: tuple, method: str, noise_open: bool):
     low, high, cells, periodic = geometry
     grid = StateGrid(np.array(low), np.array(high), np.array(cells), periodic=np.array(periodic))
 
-    # Two compiled programs, not one: XLA on the CPU fuses the elementwise interval arithmetic
+    # Separate compiled programs, not one: XLA on the CPU fuses the elementwise interval arithmetic
     # into every consumer, so in one program each output of ``index_boxes`` (start, length,
     # sink) and the NaN test recomputed the reachable sets (an optimization barrier is dropped on
     # the CPU). Materializing the boxes in between costs a write and a read of them instead.
     # benchmarks/cpu_layouts.py (retired; figures in docs/performance.md; identical boxes): one program takes 2.0x as long on the 2-D
     # unicycle, 0.98x on the 3-D unicycle and 0.73-1.18x on the 4-room model (cheap affine
     # dynamics) across runs: the split pays where the dynamics are costly to enclose.
-    enclose = jax.jit(functools.partial(reachable_boxes, dynamics, method=method, noise_open=noise_open))
+    periodic_dims = np.flatnonzero(grid.periodic)
+    flat = jnp.asarray(~grid.periodic)
 
     @jax.jit
-    def snap(lo, hi, hi_open):
-        has_nan = jnp.any(jnp.isnan(lo) | jnp.isnan(hi), axis=(1, 2, 3))
-        return index_boxes(grid, lo, hi, hi_open), has_nan
+    def enclose(x_lo, x_hi, actions, w_lo, w_hi, x_high_open):
+        lo, hi, hi_open = reachable_boxes(dynamics, x_lo, x_hi, actions, w_lo, w_hi, method=method,
+                                          x_high_open=x_high_open, noise_open=noise_open)
+        # Two outputs where the dimensions allow it (see ``snapping_end``), not three; each
+        # dimension contiguous (the snapping reads them one at a time).
+        hi = jnp.where(flat, snapping_end(hi, hi_open, grid.high), hi)
+        return jnp.moveaxis(lo, -1, 0), jnp.moveaxis(hi, -1, 0), jnp.moveaxis(hi_open[..., periodic_dims], -1, 0)
+
+    @jax.jit
+    def codes(lo, hi, periodic_open):
+        has_nan = jnp.any(jnp.isnan(lo) | jnp.isnan(hi), axis=(0, 2, 3))
+        opens = [jnp.zeros(hi.shape[1:], bool)] * grid.n
+        for i, d in enumerate(periodic_dims):
+            opens[d] = periodic_open[i]
+        return dimension_codes(grid, list(lo), list(hi), opens, normal_ends=True), has_nan
 
     def run(x_lo, x_hi, x_open, actions, w_lo, w_hi):
-        return snap(*enclose(x_lo, x_hi, actions, w_lo, w_hi, x_high_open=x_open))
+        packed, has_nan = codes(*enclose(x_lo, x_hi, actions, w_lo, w_hi, x_open))
+        return _decode(packed), has_nan
 
     return run

@@ -26,6 +26,7 @@ cells it covers.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Sequence
 from fractions import Fraction
 
@@ -174,13 +175,29 @@ class StateGrid:
     def dimension_index(self, x, d: int):
         """Cell index along dimension ``d`` of coordinates ``x: (...)`` already wrapped and inside
         ``[low[d], high[d]]``: the k with ``edges[d][k] <= x < edges[d][k + 1]`` (k = cells - 1 at
-        ``high``). Exact: an estimate from the nominal width, corrected by comparison with the
-        faces (the estimate is off by at most one cell)."""
+        ``high``). Exact (see `dimension_cell`)."""
+        return self.dimension_cell(x, d)[0]
+
+    def dimension_cell(self, x, d: int):
+        """``(k, x == edges[d][k])`` for coordinates ``x: (...)`` inside ``[low[d], high[d]]``:
+        the cell index of `dimension_index` and whether x lies on that cell's lower face.
+
+        An estimate from the nominal width (off by at most one cell) corrected by exact comparison
+        with the faces around it."""
         last = int(self.cells[d]) - 1
-        guess = jnp.clip(jnp.floor((x - self.low[d]) / self.width[d]), 0, last).astype(jnp.int32)
-        guess = guess - (x < self.face(d, guess)).astype(jnp.int32)
-        guess = guess + (x >= self.face(d, jnp.minimum(guess + 1, last + 1))).astype(jnp.int32)
-        return jnp.clip(guess, 0, last)
+        guess = jnp.clip(jnp.floor((x - self.low[d]) * (1.0 / self.width[d])), 0, last).astype(jnp.int32)
+        faces = jnp.asarray(self._face_windows[d])  # e_{k-1}, e_k, e_{k+1} at k + 0, 1, 2
+        below, at, above = faces[guess], faces[guess + 1], faces[guess + 2]
+        down = x < at
+        up = (x >= above) & (guess < last)
+        k = guess - down.astype(jnp.int32) + up.astype(jnp.int32)
+        face = jnp.where(down, below, jnp.where(up, above, at))
+        return k, x == face
+
+    @functools.cached_property
+    def _face_windows(self) -> tuple:
+        """Per dimension the faces with -inf in front: ``(cells + 2,)``."""
+        return tuple(np.concatenate([[-np.inf], e]) for e in self.edges)
 
     def wrap(self, x):
         """Points ``(..., n)`` with periodic coordinates brought into ``[low, high)``."""

@@ -248,3 +248,44 @@ def test_affine_smdp_equals_exact_floor_ceil_snapping():
     assert np.all(lo <= lo_ref + 1e-12)
     np.testing.assert_allclose(lo, lo_ref, atol=1e-9)
     assert lo.mean() > 0.05 and lo.max() > 0.3  # a guarantee worth comparing
+
+
+def test_snapping_end_gives_the_cells_of_an_open_upper_end():
+    """The compact hand-over of the enclosure (one upper end instead of an end and a flag) snaps
+    to exactly the cells the end and its flag give, on faces, next to them, at 0, at the grid
+    box's top (where the float above ``high`` must still reach the sink) and beyond."""
+    from smdpjax.abstraction.clusters import snapping_end
+
+    g = sj.StateGrid([-1.0, 0.0], [1.0, 3.0], [8, 30])
+    rng = np.random.default_rng(1)
+    ends = []
+    for d in range(2):
+        e = np.concatenate([g.edges[d], [0.0, -0.0, 2.3e-308, -2.3e-308, 1e-300, np.inf, -np.inf, 5.0, -5.0]])
+        near = np.concatenate([e, np.nextafter(e, np.inf), np.nextafter(e, -np.inf), e + 1e-3])
+        ends.append(near[~np.isnan(near)])
+    size = 4000
+    lo = np.stack([rng.choice(ends[d], size) for d in range(2)], axis=-1)
+    hi = np.stack([rng.choice(ends[d], size) for d in range(2)], axis=-1)
+    lo, hi = np.minimum(lo, hi), np.maximum(lo, hi)
+    flags = rng.uniform(size=(size, 2)) < 0.5
+    want = index_boxes(g, jnp.asarray(lo), jnp.asarray(hi), jnp.asarray(flags))
+    got = index_boxes(g, jnp.asarray(lo), snapping_end(jnp.asarray(hi), jnp.asarray(flags), g.high))
+    for field in ("start", "length", "sink"):
+        np.testing.assert_array_equal(np.asarray(getattr(got, field)), np.asarray(getattr(want, field)), err_msg=field)
+    assert np.any(hi == np.nextafter(g.high, np.inf)) and np.any(flags & (hi == g.edges[0][3]))
+
+
+def test_dimension_codes_take_either_layout():
+    from smdpjax.abstraction.clusters import decode_boxes, dimension_codes
+
+    g = sj.StateGrid([0.0, 0.0], [1.0, 2 * np.pi], [10, 12], periodic=[False, True])
+    rng = np.random.default_rng(2)
+    lo = rng.uniform(-0.5, 7.0, (50, 2))
+    hi = lo + rng.uniform(0, 2.0, (50, 2))
+    flags = rng.uniform(size=(50, 2)) < 0.5
+    last = dimension_codes(g, jnp.asarray(lo), jnp.asarray(hi), jnp.asarray(flags))
+    first = dimension_codes(g, list(jnp.asarray(lo.T)), list(jnp.asarray(hi.T)), list(jnp.asarray(flags.T)),
+                            normal_ends=True)
+    np.testing.assert_array_equal(np.asarray(last), np.asarray(first))
+    boxes = decode_boxes(first)
+    assert boxes.start.shape == (50, 2) and boxes.sink.shape == (50,)
