@@ -289,3 +289,27 @@ def test_dimension_codes_take_either_layout():
     np.testing.assert_array_equal(np.asarray(last), np.asarray(first))
     boxes = decode_boxes(first)
     assert boxes.start.shape == (50, 2) and boxes.sink.shape == (50,)
+
+
+def test_heading_face_below_pi_moves_the_vehicle_up():
+    """sin is positive on a heading cell that starts at fl(pi) (1.2e-16 below pi), so a moving
+    vehicle at the top of its y cell crosses the face above: the exact answer, which float
+    arithmetic rounded to nearest misses (the reason row 20 stays at 0.389, docs/concepts/semantics.md)."""
+    mpmath = pytest.importorskip("mpmath")
+    from smdpjax.case_studies.unicycle_3d import dynamics
+    from smdpjax.reach import reachable_boxes
+
+    g = sj.StateGrid([0, 0, 0], [1, 1, 2 * np.pi], 30, periodic=[False, False, True])
+    cell = int(np.ravel_multi_index((15, 0, 15), (30, 30, 30)))
+    x_lo, x_hi = g.cell_bounds(np.array([cell]))
+    assert x_lo[0, 2] == np.pi  # fl(pi), below pi
+    w_lo, w_hi = np.array([[0.45, 0.0]]), np.array([[0.5, 0.5]])  # speed in [0, 0.05]
+    lo, hi, hi_open = reachable_boxes(dynamics, x_lo, x_hi, np.array([[0.5, 0.0]]), w_lo, w_hi, method="natural",
+                                      x_high_open=~np.asarray(g.upper_attained(np.array([cell]))), noise_open=True)
+    boxes = index_boxes(g, lo.reshape(1, 3), hi.reshape(1, 3), hi_open.reshape(1, 3))
+    assert int(boxes.length[0, 1]) == 2  # rows 0 and 1 in y
+    mpmath.mp.prec = 200
+    face = mpmath.mpf(float(g.edges[1][1]))
+    sup = mpmath.mpf(float(x_hi[0, 1])) + mpmath.mpf(0.1) * (mpmath.mpf(0.5) - mpmath.mpf(0.45)) * mpmath.sin(mpmath.mpf(float(x_lo[0, 2])))
+    assert sup > face  # values just below the supremum lie above the face: the row is reached
+    assert float(x_hi[0, 1]) + 0.1 * (0.5 - 0.45) * np.sin(x_lo[0, 2]) == g.edges[1][1]  # rounded to nearest: on the face
