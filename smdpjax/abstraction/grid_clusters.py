@@ -96,6 +96,7 @@ def compute_grid_clusters(system: System, grid: StateGrid, noise_grid: NoiseGrid
     prob, prob_rest = noise_grid.probabilities(system.noise)
     w_lo, w_hi = noise_grid.boxes()
     per_row = (1 if policy is not None else system.num_actions) * noise_grid.num_bounded
+    _require_memory(grid, rows.size, per_row)
     chunk = int(max(1, min(rows.size, BOXES_PER_CHUNK // per_row)))
     place, on_mesh = (lambda a: a), contextlib.nullcontext
     if mesh is not None:
@@ -136,6 +137,19 @@ def compute_grid_clusters(system: System, grid: StateGrid, noise_grid: NoiseGrid
     else:  # one array on the default device
         boxes = jax.tree.map(lambda *a: jnp.concatenate(a), *parts)
     return GridClusters(rows=rows, boxes=boxes, prob=prob, prob_rest=prob_rest)
+
+
+def _require_memory(grid: StateGrid, rows: int, per_row: int) -> None:
+    """Refuse clusters that would not fit: the index boxes of every (row, action, noise cell)
+    (start and length int32 per dimension, a sink flag) plus one chunk's float64 temporaries."""
+    from ..memory import require
+
+    boxes = float(rows) * per_row
+    stored = boxes * (8 * grid.n + 1)
+    chunk = min(boxes, BOXES_PER_CHUNK) * grid.n * 8 * 8  # ends, flags, codes and the pieces between
+    require(stored + chunk, f"the clusters of {rows} cells x {per_row} (action, noise cell) pairs "
+            f"({boxes:.3g} reachable boxes)",
+            "use a coarser state grid, fewer noise cells or actions, or a fixed policy (policy=)")
 
 
 def _chunk_fn(dynamics, grid: StateGrid, method: str, noise_open: bool):

@@ -68,6 +68,17 @@ def _edges(low: float, high: float, cells: int, dim: int) -> np.ndarray:
     return e
 
 
+def _require_labels_memory(cells: np.ndarray, regions: int) -> None:
+    """Refuse a grid whose per-cell arrays (faces of every cell, region tests, labels) would not
+    fit, before computing them."""
+    from ..memory import require
+
+    count, n = float(np.prod(cells.astype(np.float64))), int(cells.size)
+    per_cell = 2 * 8 * n + 8 + 1 + 2 * max(regions, 1) * n  # faces, index, label, region tests
+    require(count * per_cell, f"StateGrid with {count:.3g} cells ({' x '.join(str(int(c)) for c in cells)})",
+            "use fewer cells per dimension")
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class StateGrid:
     """Uniform grid over the safe box ``[low, high]`` with reach and avoid boxes.
@@ -122,6 +133,7 @@ class StateGrid:
         object.__setattr__(self, "avoid_boxes", avoid_boxes)
         object.__setattr__(self, "periodic", periodic)
         object.__setattr__(self, "edges", edges)
+        _require_labels_memory(cells, len(r_lo) + len(a_lo))
         object.__setattr__(self, "labels", self._compute_labels())
 
     # -- geometry ---------------------------------------------------------------------------
