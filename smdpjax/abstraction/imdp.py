@@ -97,16 +97,6 @@ class IMDP(AbstractionMixin):
     def num_actions(self) -> int:
         return int(self.successors.shape[1])
 
-    def any_positive_lower(self) -> bool:
-        """Whether any transition has a positive lower bound."""
-        return bool(jnp.any(self.lower > 0))
-
-    def compact(self):
-        """The same abstraction stored without padding (``imdp_compact.CompactIMDP``)."""
-        from .imdp_compact import CompactIMDP
-
-        return CompactIMDP.from_imdp(self)
-
     @property
     def summands_per_backup(self) -> float:
         # listed successors twice (lower-bound part and fill), plus the unlisted states' prefix sum
