@@ -260,7 +260,7 @@ def _geometry_key(system, grid, noise_grid, method):
 
 def sweep(problem: Callable, values: Sequence, *, kind: str = "smdp", probabilities: Callable | None = None,
           tol: float = 1e-6, method: str = "both", max_iterations: int = 100_000,
-          batch_size: int | None = None) -> SweepResult:
+          batch_size: int | None = None, specification=None) -> SweepResult:
     """Synthesis for every value in ``values``, batched by cluster structure.
 
     Args:
@@ -273,6 +273,10 @@ def sweep(problem: Callable, values: Sequence, *, kind: str = "smdp", probabilit
             computed beforehand.
         kind, tol, method, max_iterations: as in ``abstract`` and ``synthesize``.
         batch_size: as in ``batched_synthesis``.
+        specification: optional ``GridSpecification`` (``spec.on(grid)``, on the problems' grid,
+            built without reach/avoid boxes): synthesize for it on the product instead of
+            reach-avoid. The solutions are then over the product states, ``(V, Q * (N+1))``
+            (``reshape(V, Q, N+1)``; ``spec.start_states(cells)`` indexes the starts).
 
     Returns:
         ``SweepResult``; ``result.group`` tells which values shared a structure.
@@ -286,6 +290,9 @@ def sweep(problem: Callable, values: Sequence, *, kind: str = "smdp", probabilit
         key = _geometry_key(system, grid, noise_grid, method)
         if key not in cache:
             cache[key] = ClusterStructure.compute(system, grid, noise_grid, method=method)
+            if specification is not None:
+                from .specification.structure import ProductStructure
+                cache[key] = ProductStructure.of(cache[key], specification)
         structure = cache[key]
         fp = structure.fingerprint()
         if fp not in fingerprints:

@@ -11,6 +11,8 @@ for Monte Carlo validation with ``simulate``.
 
 Beyond the paper:
 
+* ``unicycle_2d_dfa(cells, spec=)``: case study 1 told to visit A, then B, avoiding the
+  obstacles (and, with ``spec="never_after"``, never the passage C after A): DFA specifications.
 * ``robot_2d(cells)``: IMPaCT's 2-D robot (additive Gaussian noise, 441 actions), the benchmark of
   the direct IMDP bounds (``abstract(..., bounds="direct")``, ``benchmarks/direct_imdp.py``).
 
@@ -22,6 +24,7 @@ from .case_study import CaseStudy
 from .robot_2d import robot_2d
 from .temperature import temperature
 from .unicycle_2d import unicycle_2d
+from .unicycle_2d_dfa import unicycle_2d_dfa
 from .unicycle_3d import unicycle_3d
 
-__all__ = ["CaseStudy", "unicycle_2d", "unicycle_3d", "temperature", "robot_2d"]
+__all__ = ["CaseStudy", "unicycle_2d", "unicycle_3d", "temperature", "robot_2d", "unicycle_2d_dfa"]

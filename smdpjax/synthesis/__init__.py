@@ -11,7 +11,8 @@ from ..partition import NONTERMINAL
 from . import value_iteration
 from .solution import Solution
 
-__all__ = ["synthesize", "verify", "Solution"]
+__all__ = ["synthesize", "verify", "Solution", "synthesize_product", "verify_product", "ProductAbstraction",
+           "ProductSolution", "product"]
 
 
 def _check(abstraction, horizon, tol, objective):
@@ -212,3 +213,6 @@ def _evaluate_both(abstraction, v0, policy_rows, tol, max_iterations, guess=None
     up, k_up, d_up = _optimistic(abstraction, policy_rows, tol, max_iterations)
     converged = converged_lo and d_up <= tol
     return lo, up, k_lo + k_up, (converged, d_up)
+
+
+from .product import ProductAbstraction, ProductSolution, product, synthesize_product, verify_product  # noqa: E402
