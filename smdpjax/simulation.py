@@ -77,6 +77,16 @@ class SimulationResult:
                 f"failed={int(jnp.sum(self.failed))}, undecided={self.undecided})")
 
 
+def start_states(grid: StateGrid, x0, max_steps: int):
+    """``x0`` as a ``(B, n)`` float64 array; ValueError for another shape or ``max_steps <= 0``."""
+    x0 = jnp.asarray(x0, jnp.float64)
+    if x0.ndim != 2 or x0.shape[1] != grid.n:
+        raise ValueError(f"x0 must have shape (B, {grid.n}), got {x0.shape}")
+    if int(max_steps) <= 0:
+        raise ValueError(f"max_steps must be positive, got {max_steps}")
+    return x0
+
+
 def simulate(system: System, controller: Controller, x0, key, *, max_steps: int = 1000,
              objective: str = "reach_avoid", return_trajectories: bool = False) -> SimulationResult:
     """Monte Carlo of the closed loop ``x[t+1] = f(x[t], kappa(x[t], t), w[t])`` from ``x0: (B, n)``.
@@ -87,12 +97,7 @@ def simulate(system: System, controller: Controller, x0, key, *, max_steps: int 
     """
     if objective not in ("reach_avoid", "safety"):
         raise ValueError(f"unknown objective {objective!r}; expected 'reach_avoid' or 'safety'")
-    x0 = jnp.asarray(x0, jnp.float64)
-    grid = controller.grid
-    if x0.ndim != 2 or x0.shape[1] != grid.n:
-        raise ValueError(f"x0 must have shape (B, {grid.n}), got {x0.shape}")
-    if int(max_steps) <= 0:
-        raise ValueError(f"max_steps must be positive, got {max_steps}")
+    x0 = start_states(controller.grid, x0, max_steps)
     run = _rollout_fn(system, controller.grid, int(max_steps), objective, bool(return_trajectories))
     satisfied, failed, steps, traj = run(controller.policy, x0, key)
     return SimulationResult(satisfied=satisfied, failed=failed, steps=steps, trajectories=traj)

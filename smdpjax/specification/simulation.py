@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 
 
-from ..simulation import SimulationResult
+from ..simulation import SimulationResult, start_states
 from ..system import System
 from .specification import GridSpecification
 
@@ -100,12 +100,7 @@ def simulate_product(system: System, controller: ProductController, x0, key, *, 
     """
     if not isinstance(controller, ProductController):
         raise TypeError(f"controller must be a ProductController, got {type(controller).__name__}")
-    x0 = jnp.asarray(x0, jnp.float64)
-    grid = controller.grid
-    if x0.ndim != 2 or x0.shape[1] != grid.n:
-        raise ValueError(f"x0 must have shape (B, {grid.n}), got {x0.shape}")
-    if int(max_steps) <= 0:
-        raise ValueError(f"max_steps must be positive, got {max_steps}")
+    x0 = start_states(controller.grid, x0, max_steps)
     run = _rollout_fn(system, controller.specification, int(max_steps), bool(return_trajectories))
     satisfied, failed, steps, q, traj = run(controller.policy, x0, key)
     return ProductSimulationResult(satisfied=satisfied, failed=failed, steps=steps, dfa_state=q, trajectories=traj)
