@@ -101,7 +101,7 @@ def _unbounded_like(x, flag):
     return (jnp.where(flag & ~nan, -jnp.inf, x[0]), jnp.where(flag & ~nan, jnp.inf, x[1]))
 
 
-def _centered(fn, lows, highs, nat):
+def _centered(fn, lows, highs, nat, staged: bool = False):
     """Centred enclosure given `nat`, the natural `interval_eval` of fn over the same box (for
     the continuity flag and the magnitude of intermediates)."""
     closed = jax.make_jaxpr(fn)(*lows)
@@ -127,7 +127,7 @@ def _centered(fn, lows, highs, nat):
     n_terms = 0
     if diff:
         jac = jax.jacfwd(_true_function(closed), argnums=tuple(diff))
-        J = interval_eval(jac, lows, highs)
+        J = interval_eval(jac, lows, highs, staged=staged)
         nd = len(out_aval.shape)
         for i, jl, jh in zip(diff, J.lo, J.hi):
             mag = jnp.maximum(jnp.abs(jl), jnp.abs(jh))
@@ -160,7 +160,7 @@ def centered_enclosure(fn: Callable, lows: Sequence, highs: Sequence):
 
 
 def enclose(fn: Callable, lows: Sequence, highs: Sequence, method: str = "both", open_lows=None,
-            open_highs=None, with_open: bool = False):
+            open_highs=None, with_open: bool = False, staged: bool = False):
     """Box enclosure of fn over the box by ``method``: "natural" (interval extension),
     "centered" (mean-value form) or "both" (their intersection: never looser than either).
 
@@ -172,13 +172,13 @@ def enclose(fn: Callable, lows: Sequence, highs: Sequence, method: str = "both",
         raise ValueError(f"unknown enclosure method {method!r}; use 'natural', 'centered' or 'both'")
     lows, highs = as_box(lows, highs)
     nat = interval_eval(fn, lows, highs, track_magnitude=method != "natural", open_lows=open_lows,
-                        open_highs=open_highs)
+                        open_highs=open_highs, staged=staged)
     if len(nat.lo) != 1:
         raise ValueError(f"fn must return exactly one array, got {nat.treedef}")
     n_lo, n_hi, n_lo_open, n_hi_open = nat.lo[0], nat.hi[0], nat.lo_open[0], nat.hi_open[0]
     if method == "natural":
         return (n_lo, n_hi, n_lo_open, n_hi_open) if with_open else (n_lo, n_hi)
-    c_lo, c_hi = _centered(fn, lows, highs, nat)
+    c_lo, c_hi = _centered(fn, lows, highs, nat, staged)
     if method == "centered":
         closed = jnp.zeros(jnp.shape(c_lo), bool)
         return (c_lo, c_hi, closed, closed) if with_open else (c_lo, c_hi)

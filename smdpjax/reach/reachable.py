@@ -9,7 +9,7 @@ from .centered import enclose
 
 
 def reachable_boxes(dynamics, x_low, x_high, actions, w_low, w_high, method: str = "both", x_high_open=None,
-                    noise_open: bool = False):
+                    noise_open: bool = False, staged: bool = True):
     """Enclosures of Reach for every (state box, action, noise box) triple.
 
     Args:
@@ -22,6 +22,10 @@ def reachable_boxes(dynamics, x_low, x_high, actions, w_low, w_high, method: str
             (half-open cells). When given, the upper ends' open flags are returned too.
         noise_open: the noise has a density, so no noise box attains its faces with positive
             probability.
+        staged: store every intermediate that depends on fewer of (state, action, noise) than
+            its consumer (e.g. the cos of a heading interval, once per state instead of once per
+            (state, action, noise) triple). The same bounds bit for bit; on the CPU 2-3x faster
+            for dynamics with costly per-state terms.
 
     Returns:
         ``(lo, hi)``, each ``(R, A, C, n)``, with ``f(x, u_a, w) in [lo, hi]`` for all x, w in
@@ -32,11 +36,11 @@ def reachable_boxes(dynamics, x_low, x_high, actions, w_low, w_high, method: str
 
     def one(xl, xh, xo, u, wl, wh):
         if not with_open:
-            return enclose(dynamics, (xl, u, wl), (xh, u, wh), method)
+            return enclose(dynamics, (xl, u, wl), (xh, u, wh), method, staged=staged)
         w_open = jnp.full(wl.shape, bool(noise_open))
         lo, hi, _, hi_open = enclose(dynamics, (xl, u, wl), (xh, u, wh), method,
                                      open_lows=(False, False, w_open), open_highs=(xo, False, w_open),
-                                     with_open=True)
+                                     with_open=True, staged=staged)
         return lo, hi, hi_open
 
     over_noise = jax.vmap(one, in_axes=(None, None, None, None, 0, 0))
