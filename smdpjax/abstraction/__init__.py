@@ -87,7 +87,7 @@ def abstract(system: System, state_grid: StateGrid, noise_grid: NoiseGrid | None
         abstraction = direct_imdp(system, state_grid, method=method, policy=policy, progress=progress, **options)
     else:
         clusters = compute_grid_clusters(system, state_grid, noise_grid, method=method, policy=policy,
-                                         progress=progress, mesh=mesh)
+                                         progress=progress, mesh=mesh, compact=kind == "smdp")
         abstraction = build(kind, state_grid, clusters, **options)
     if mesh is None:
         return abstraction

@@ -35,8 +35,11 @@ class IndexBoxes:
     """Cells met by reachable boxes, as index boxes. Leading shape ``B`` is arbitrary.
 
     Attributes:
-        start: ``(*B, n)`` int32, first cell index per dimension (in ``[0, cells)``).
-        length: ``(*B, n)`` int32, number of cells per dimension; 0 when the box misses the grid.
+        start: ``(*B, n)`` int32 (or the smallest type that holds the grid's cells, see
+            ``compute_grid_clusters(..., compact=True)``), first cell index per dimension (in
+            ``[0, cells)``).
+        length: ``(*B, n)``, same type, number of cells per dimension; 0 when the box misses the
+            grid.
         sink: ``(*B,)`` bool, the box also meets the sink (leaves the grid box).
     """
 
@@ -120,14 +123,23 @@ def _normal_ends(lo, hi, hi_open):
     return lo, hi, hi_open | sub_hi
 
 
-def decode_boxes(codes) -> IndexBoxes:
-    """`IndexBoxes` (leading shape ``B``) from `dimension_codes` ``(n, *B)``."""
+def decode_boxes(codes, dtype=jnp.int32) -> IndexBoxes:
+    """`IndexBoxes` (leading shape ``B``) from `dimension_codes` ``(n, *B)``, with starts and
+    lengths of integer type ``dtype`` (which must hold every cell index and box length)."""
     mask = (1 << _LENGTH_SHIFT) - 1
-    lengths = [((c >> _LENGTH_SHIFT) & mask).astype(jnp.int32) for c in codes]
+    lengths = [((c >> _LENGTH_SHIFT) & mask).astype(dtype) for c in codes]
     empty = functools.reduce(jnp.logical_or, [n == 0 for n in lengths])
     sink = functools.reduce(jnp.logical_or, [(c >> _LEAVE_SHIFT) != 0 for c in codes]) | empty
-    start = jnp.stack([jnp.where(empty, 0, (c & mask).astype(jnp.int32)) for c in codes], axis=-1)
+    start = jnp.stack([jnp.where(empty, 0, (c & mask).astype(dtype)) for c in codes], axis=-1)
     return IndexBoxes(start=start, length=jnp.stack([jnp.where(empty, 0, n) for n in lengths], axis=-1), sink=sink)
+
+
+def small_int(max_value: int):
+    """Smallest signed integer type holding ``0 .. max_value``."""
+    for dtype in (jnp.int8, jnp.int16, jnp.int32):
+        if max_value <= np.iinfo(dtype).max:
+            return dtype
+    raise ValueError(f"{max_value} cells in one dimension do not fit int32")
 
 
 def snapping_end(hi, hi_open, high):

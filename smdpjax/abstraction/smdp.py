@@ -31,7 +31,7 @@ import numpy as np
 from .._pytree import pytree_dataclass, static_field
 from ..partition import StateGrid
 from .base import AbstractionMixin, check_adversary
-from .clusters import IndexBoxes, cluster_members, lengths_of, max_lengths
+from .clusters import IndexBoxes, cluster_members, lengths_of, max_lengths, small_int
 from .grid_clusters import GridClusters
 from .imdp import row_chunks
 from .range_min import RangeSpec, build_table, query_table
@@ -99,8 +99,11 @@ class BoxClusters:
     @classmethod
     def from_index_boxes(cls, grid: StateGrid, boxes: IndexBoxes) -> "BoxClusters":
         """Compact copy of ``boxes`` (leading shape ``(R, A, C_b)``) on ``grid`` (needs concrete boxes)."""
-        dtype = np.dtype(_small_int(int(np.max(grid.cells))))
-        start, length, sink, longest = _compact(boxes.start, boxes.length, boxes.sink, dtype)
+        dtype = np.dtype(small_int(int(np.max(grid.cells))))
+        if boxes.start.dtype == dtype and boxes.sink.dtype == bool:  # compact already: no copy
+            start, length, sink, longest = boxes.start, boxes.length, boxes.sink, _longest(boxes.length)
+        else:
+            start, length, sink, longest = _compact(boxes.start, boxes.length, boxes.sink, dtype)
         return cls(start=start, length=length, sink=sink, spec=RangeSpec.for_grid(grid, lengths_of(longest)))
 
     @property
@@ -138,18 +141,14 @@ class BoxClusters:
         return f"encoding=boxes, max box={lengths} cells"
 
 
+@jax.jit
+def _longest(length):
+    return jnp.max(length.reshape(-1, length.shape[-1]), axis=0)
+
+
 @functools.partial(jax.jit, static_argnums=3)
 def _compact(start, length, sink, dtype):  # one dispatch: the build of small SMDPs is all overhead
-    longest = jnp.max(length.reshape(-1, length.shape[-1]), axis=0)
-    return start.astype(dtype), length.astype(dtype), sink.astype(bool), longest
-
-
-def _small_int(max_value: int):
-    """Smallest signed integer type holding ``0 .. max_value``."""
-    for dtype in (jnp.int8, jnp.int16, jnp.int32):
-        if max_value <= np.iinfo(dtype).max:
-            return dtype
-    raise ValueError(f"{max_value} cells in one dimension do not fit int32")
+    return start.astype(dtype), length.astype(dtype), sink.astype(bool), _longest(length)
 
 
 @pytree_dataclass

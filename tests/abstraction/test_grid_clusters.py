@@ -29,3 +29,23 @@ def test_grids_of_one_geometry_share_the_compiled_stage_and_give_the_same_boxes(
     for field in ("start", "length", "sink"):
         np.testing.assert_array_equal(np.asarray(getattr(a.boxes, field))[ia], np.asarray(getattr(b.boxes, field))[ib])
     assert np.asarray(a.prob).shape == (9,)
+
+
+def test_compact_boxes_are_the_int32_boxes_in_the_smallest_type():
+    system = sj.System(drift, actions=np.array([[1.0, 0.0], [0.0, -1.0]]), noise=sj.Gaussian([0, 0], [0.3, 0.3]))
+    noise = sj.NoiseGrid.ball([0, 0], 1.0, 3)
+    for cells, dtype in ((12, np.int8), ([130, 3], np.int16)):
+        grid = sj.StateGrid([0, 0], [1, 1], cells, reach=[([0.75, 0.75], [1, 1])])
+        wide = compute_grid_clusters(system, grid, noise, method="natural")
+        small = compute_grid_clusters(system, grid, noise, method="natural", compact=True)
+        assert wide.boxes.start.dtype == np.int32 and small.boxes.start.dtype == dtype
+        assert small.boxes.length.dtype == dtype
+        for field in ("start", "length", "sink"):
+            np.testing.assert_array_equal(np.asarray(getattr(small.boxes, field)), np.asarray(getattr(wide.boxes, field)))
+        smdp = sj.abstraction.build("smdp", grid, small)
+        assert smdp.clusters.start is small.boxes.start  # stored as computed, not copied
+        reference = sj.abstraction.build("smdp", grid, wide)
+        assert smdp.nbytes == reference.nbytes and smdp.clusters.spec == reference.clusters.spec
+        v = np.random.default_rng(0).random(grid.num_states)
+        np.testing.assert_array_equal(np.asarray(smdp.q_values(v)), np.asarray(reference.q_values(v)))
+    assert sj.abstract(system, grid, noise, "smdp", method="natural").clusters.start.dtype == np.int16
