@@ -28,7 +28,9 @@ import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-KINDS = ("imdp", "2imdp", "smdp", "mimdp")  # smdp: index boxes (the members encoding shards the same leaves)
+# smdp: index boxes (the members encoding shards the same leaves); smdp-structured: the same system
+# declared additive, with per-dimension pieces of the boxes
+KINDS = ("imdp", "2imdp", "smdp", "mimdp", "smdp-structured")
 HORIZON = 6
 
 CHILD = textwrap.dedent(r'''
@@ -45,6 +47,8 @@ CHILD = textwrap.dedent(r'''
 
     system = sj.System(dynamics, actions=(np.arange(4) * np.pi / 2)[:, None],
                        noise=sj.Gaussian([0.0, 0.0], [0.3, 0.3]))
+    additive = sj.System.additive(lambda x, u: x + 0.12 * jnp.array([jnp.cos(u[0]), jnp.sin(u[0])]), 0.1,
+                                  actions=system.actions, noise=system.noise)
     grid = sj.StateGrid([0, 0], [1, 1], 10, reach=[([0.6, 0.6], [1.0, 1.0])],
                         avoid=[([0.3, 0.0], [0.5, 0.5])])  # 74 non-terminal rows: 2 padding copies
     noise = sj.NoiseGrid.ball([0.0, 0.0], 2.1, 6)
@@ -71,8 +75,9 @@ CHILD = textwrap.dedent(r'''
         kinds.remove("mimdp")
     for kind in kinds:
         res = {}
-        options = {"encoding": "members"} if kind == "smdp-members" else {}
-        a = sj.abstract(system, grid, noise, kind.split("-")[0], mesh=mesh, **options)
+        options = {"encoding": kind.split("-")[1]} if "-" in kind else {}
+        a = sj.abstract(additive if kind == "smdp-structured" else system, grid, noise, kind.split("-")[0],
+                        mesh=mesh, **options)
         res["num_rows"] = a.num_rows
         if sharded:
             # every per-row leaf in 4 equal shards, one per device; every other leaf on all 4

@@ -21,6 +21,7 @@ from .grid_clusters import GridClusters, compute_grid_clusters
 from .imdp import IMDP, interval_min
 from .mimdp import MIMDP
 from .smdp import SMDP
+from .structured import pays_off
 from .twolayer import TwoLayerIMDP
 
 _BUILDERS = {"imdp": IMDP, "2imdp": TwoLayerIMDP, "mimdp": MIMDP, "smdp": SMDP}
@@ -53,7 +54,11 @@ def abstract(system: System, state_grid: StateGrid, noise_grid: NoiseGrid | None
         noise_grid: the partition C of W (not used by ``bounds="direct"``: pass it or ``None``).
         kind: ``"imdp"``, ``"2imdp"`` (option ``block``: coarse block shape in cells),
             ``"mimdp"`` (options ``extra_clusters``, ``lp_backend="clarabel"|"highs"``,
-            ``screen_actions``, ``freeze_multipliers``, see ``MIMDP.from_clusters``) or ``"smdp"``.
+            ``screen_actions``, ``freeze_multipliers``, see ``MIMDP.from_clusters``) or ``"smdp"``
+            (option ``encoding``: ``"boxes"``, ``"members"``, ``"structured"`` for a
+            ``System.additive`` with one nonzero per row of B: O(R A K n) memory instead of
+            O(R A C n), see ``SMDP.structured``; or ``"auto"``, the default: structured where it
+            applies and halves the memory (``structured.pays_off``), else boxes).
         method: reachable-set enclosure: ``"natural"``, ``"centered"`` or ``"both"`` (direct
             bounds: the enclosure of g over a cell).
         policy: optional ``(N,)`` action index per cell: abstract only that action in each cell
@@ -85,6 +90,10 @@ def abstract(system: System, state_grid: StateGrid, noise_grid: NoiseGrid | None
         if kind != "imdp":
             raise ValueError(f"bounds='direct' builds an IMDP (kind='imdp'), got kind={kind!r}")
         abstraction = direct_imdp(system, state_grid, method=method, policy=policy, progress=progress, **options)
+    elif kind == "smdp" and (options.get("encoding") == "structured" or (
+            options.get("encoding", "auto") == "auto" and pays_off(system, state_grid, noise_grid))):
+        abstraction = SMDP.structured(system, state_grid, noise_grid, method=method, policy=policy,
+                                      progress=progress, mesh=mesh)
     else:
         clusters = compute_grid_clusters(system, state_grid, noise_grid, method=method, policy=policy,
                                          progress=progress, mesh=mesh, compact=kind == "smdp")

@@ -134,6 +134,17 @@ def decode_boxes(codes, dtype=jnp.int32) -> IndexBoxes:
     return IndexBoxes(start=start, length=jnp.stack([jnp.where(empty, 0, n) for n in lengths], axis=-1), sink=sink)
 
 
+def decode_dimensions(codes, dtype=jnp.int32):
+    """Each dimension's part of `dimension_codes` ``(n, *B)`` on its own, without the
+    cross-dimension step of `decode_boxes`: ``(start, length, leave)``, each ``(*B, n)``
+    (``leave``: bool, the box leaves the grid box along that dimension)."""
+    mask = (1 << _LENGTH_SHIFT) - 1
+    start = jnp.stack([(c & mask).astype(dtype) for c in codes], axis=-1)
+    length = jnp.stack([((c >> _LENGTH_SHIFT) & mask).astype(dtype) for c in codes], axis=-1)
+    leave = jnp.stack([(c >> _LEAVE_SHIFT) != 0 for c in codes], axis=-1)
+    return start, length, leave
+
+
 def small_int(max_value: int):
     """Smallest signed integer type holding ``0 .. max_value``."""
     for dtype in (jnp.int8, jnp.int16, jnp.int32):

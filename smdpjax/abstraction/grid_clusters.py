@@ -94,15 +94,28 @@ def compute_grid_clusters(system: System, grid: StateGrid, noise_grid: NoiseGrid
     ``int32``: 7 instead of 25 bytes per box in 3-D, and no int32 copy of all boxes ever exists
     (what ``abstract(..., kind="smdp")`` asks for; the SMDP stores them so).
     """
-    if method not in ("natural", "centered", "both"):
-        raise ValueError(f"unknown reachable-set method {method!r}; expected 'natural', 'centered' or 'both'")
     rows = validate(system, grid, noise_grid)
     actions = policy_actions(system, grid, rows, policy)
     prob, prob_rest = noise_grid.probabilities(system.noise)
     w_lo, w_hi = noise_grid.boxes()
-    per_row = (1 if policy is not None else system.num_actions) * noise_grid.num_bounded
     box_dtype = small_int(int(np.max(grid.cells))) if compact else jnp.int32
+    per_row = (1 if policy is not None else system.num_actions) * noise_grid.num_bounded
     _require_memory(grid, rows.size, per_row, np.dtype(box_dtype).itemsize)
+    decode = functools.partial(_decode, dtype=np.dtype(box_dtype).name)
+    boxes = snapped_boxes(system, grid, rows, actions, w_lo, w_hi, decode, method=method, progress=progress,
+                          mesh=mesh)
+    return GridClusters(rows=rows, boxes=boxes, prob=prob, prob_rest=prob_rest)
+
+
+def snapped_boxes(system: System, grid: StateGrid, rows: np.ndarray, actions, w_lo, w_hi, decode, *,
+                  method: str = "both", progress: bool = False, mesh=None):
+    """The chunked reachable-set stage: ``decode(codes)`` of the `dimension_codes` ``(n, R_c, A,
+    C)`` of every chunk of ``rows``, concatenated along rows (``decode`` returns a PyTree whose
+    leaves lead with the chunk's rows). ``actions``: from `policy_actions`; ``w_lo, w_hi: (C, d)``
+    the noise boxes. Raises ValueError if the dynamics give NaN bounds anywhere."""
+    if method not in ("natural", "centered", "both"):
+        raise ValueError(f"unknown reachable-set method {method!r}; expected 'natural', 'centered' or 'both'")
+    per_row = (1 if actions.ndim == 3 else actions.shape[0]) * w_lo.shape[0]
     chunk = int(max(1, min(rows.size, BOXES_PER_CHUNK // per_row)))
     place, on_mesh = (lambda a: a), contextlib.nullcontext
     if mesh is not None:
@@ -112,7 +125,7 @@ def compute_grid_clusters(system: System, grid: StateGrid, noise_grid: NoiseGrid
         place = functools.partial(jax.device_put, device=split)
         if hasattr(jax, "set_mesh"):  # trace under the mesh: constants then match the inputs'
             on_mesh = functools.partial(jax.set_mesh, split.mesh)  # shardings (no `reshard` ops)
-    run = _chunk_fn(system.dynamics, grid, method, bool(system.noise.has_density), np.dtype(box_dtype).name)
+    run = _chunk_fn(system.dynamics, grid, method, bool(system.noise.has_density))
     starts = range(0, rows.size, chunk)
     if progress:
         from tqdm.auto import tqdm
@@ -126,7 +139,8 @@ def compute_grid_clusters(system: System, grid: StateGrid, noise_grid: NoiseGrid
         row_actions = actions if actions.ndim == 2 else place(actions[np.minimum(np.arange(start, start + chunk),
                                                                                  rows.size - 1)])
         with on_mesh():
-            boxes, has_nan = run(x_lo, x_hi, x_open, row_actions, w_lo, w_hi)
+            codes, has_nan = run(x_lo, x_hi, x_open, row_actions, w_lo, w_hi)
+        boxes = decode(codes)
         if mesh is not None or idx.size < chunk:
             trim = (lambda a: a[:idx.size]) if mesh is None else (lambda a: np.asarray(a)[:idx.size])  # gathered
             boxes, has_nan = jax.tree.map(trim, boxes), has_nan[:idx.size]
@@ -139,10 +153,8 @@ def compute_grid_clusters(system: System, grid: StateGrid, noise_grid: NoiseGrid
         raise ValueError(f"the reachable-set bounds of cell {cell} (box {lo.tolist()}..{hi.tolist()}) are NaN: "
                          f"the dynamics are undefined somewhere on that cell or its noise cells")
     if len(parts) == 1 and mesh is None:
-        boxes = parts[0]
-    else:  # one array on the default device
-        boxes = jax.tree.map(lambda *a: jnp.concatenate(a), *parts)
-    return GridClusters(rows=rows, boxes=boxes, prob=prob, prob_rest=prob_rest)
+        return parts[0]
+    return jax.tree.map(lambda *a: jnp.concatenate(a), *parts)  # one array on the default device
 
 
 def _require_memory(grid: StateGrid, rows: int, per_row: int, int_bytes: int = 4) -> None:
@@ -159,19 +171,19 @@ def _require_memory(grid: StateGrid, rows: int, per_row: int, int_bytes: int = 4
             "use a coarser state grid, fewer noise cells or actions, or a fixed policy (policy=)")
 
 
-def _chunk_fn(dynamics, grid: StateGrid, method: str, noise_open: bool, box_dtype: str = "int32"):
+def _chunk_fn(dynamics, grid: StateGrid, method: str, noise_open: bool):
     """The compiled chunk computation, shared by every grid of the same geometry (a new
     ``StateGrid`` object with the same box, cells and periodicity does not recompile)."""
     geometry = (tuple(grid.low.tolist()), tuple(grid.high.tolist()), tuple(int(c) for c in grid.cells),
                 tuple(bool(p) for p in grid.periodic))
-    return _chunk_fn_for(dynamics, geometry, method, noise_open, box_dtype)
+    return _chunk_fn_for(dynamics, geometry, method, noise_open)
 
 
-_decode = jax.jit(decode_boxes, static_argnums=1)
+_decode = jax.jit(decode_boxes, static_argnames="dtype")
 
 
 @functools.lru_cache(maxsize=32)
-def _chunk_fn_for(dynamics, geometry: tuple, method: str, noise_open: bool, box_dtype: str):
+def _chunk_fn_for(dynamics, geometry: tuple, method: str, noise_open: bool):
     low, high, cells, periodic = geometry
     grid = StateGrid(np.array(low), np.array(high), np.array(cells), periodic=np.array(periodic))
 
@@ -203,7 +215,6 @@ def _chunk_fn_for(dynamics, geometry: tuple, method: str, noise_open: bool, box_
         return dimension_codes(grid, list(lo), list(hi), opens, normal_ends=True), has_nan
 
     def run(x_lo, x_hi, x_open, actions, w_lo, w_hi):
-        packed, has_nan = codes(*enclose(x_lo, x_hi, actions, w_lo, w_hi, x_open))
-        return _decode(packed, box_dtype), has_nan
+        return codes(*enclose(x_lo, x_hi, actions, w_lo, w_hi, x_open))
 
     return run

@@ -199,7 +199,8 @@ def build_table(values, spec: RangeSpec, op: str = "min"):
 
 
 def query_table(table, start, length, spec: RangeSpec, op: str = "min"):
-    """``op`` of the grid array over the index boxes ``start, length: (..., n)`` -> ``(...)``.
+    """``op`` of the grid array over the index boxes ``start, length: (..., n)`` -> ``(...)``
+    (or sequences of n arrays ``(...)``, one per dimension).
 
     ``table`` comes from ``build_table(values, spec, op)``. Contract: ``0 <= start < cells`` and
     ``length <= max_lengths`` per dimension, and on non-periodic dimensions
@@ -208,14 +209,16 @@ def query_table(table, start, length, spec: RangeSpec, op: str = "min"):
     """
     combine, fill = _combine_and_fill(op, table.dtype)
     itype = spec.index_dtype
-    empty = jnp.any(length == 0, axis=-1)
+    by_dimension = lambda x: list(x) if isinstance(x, (list, tuple)) else [x[..., d] for d in range(spec.n)]
+    starts, lengths = by_dimension(start), by_dimension(length)
+    empty = functools.reduce(jnp.logical_or, [n == 0 for n in lengths])
     strides = np.cumprod((spec.table_shape + (1,))[::-1])[::-1][1:]  # C-order strides of the table
     level_strides, data_strides = strides[:spec.n], strides[spec.n:]
 
-    base = jnp.zeros(start.shape[:-1], itype)
+    base = jnp.zeros(jnp.shape(starts[0]), itype)
     windows = []  # per dimension: the first cells of its one or two windows
     for d in range(spec.n):
-        s, l = start[..., d].astype(itype), jnp.maximum(length[..., d].astype(itype), 1)
+        s, l = starts[d].astype(itype), jnp.maximum(lengths[d].astype(itype), 1)
         if spec.every_length[d]:
             base = base + (l - 1) * int(level_strides[d])  # the window of length l: the box itself
             firsts = (s,)
