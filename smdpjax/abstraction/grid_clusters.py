@@ -77,7 +77,8 @@ def policy_actions(system: System, grid: StateGrid, rows: np.ndarray, policy=Non
 
 
 def compute_grid_clusters(system: System, grid: StateGrid, noise_grid: NoiseGrid, *, method: str = "both",
-                          policy=None, progress: bool = False, mesh=None, compact: bool = False) -> GridClusters:
+                          policy=None, progress: bool = False, mesh=None, compact: bool = False,
+                          structured: bool | None = None) -> GridClusters:
     """Reachable boxes of all (non-terminal cell, action, bounded noise cell) triples, snapped to
     index boxes on ``grid``. Raises ValueError if the dynamics give NaN bounds anywhere.
 
@@ -93,6 +94,11 @@ def compute_grid_clusters(system: System, grid: StateGrid, noise_grid: NoiseGrid
     cells (``int8`` up to 127 cells per dimension, then ``int16``), chunk by chunk, instead of
     ``int32``: 7 instead of 25 bytes per box in 3-D, and no int32 copy of all boxes ever exists
     (what ``abstract(..., kind="smdp")`` asks for; the SMDP stores them so).
+
+    ``structured``: enclose only one noise cell per cell index along each noise axis and assemble
+    the boxes from per-dimension pieces (``smdpjax.abstraction.structured``; the same boxes bit
+    for bit, 4-7x faster), for a ``System.additive`` with one nonzero per row of B. ``None``
+    (default): where ``structured.pays_off``; ``False``: enclose every box.
     """
     rows = validate(system, grid, noise_grid)
     actions = policy_actions(system, grid, rows, policy)
@@ -101,6 +107,13 @@ def compute_grid_clusters(system: System, grid: StateGrid, noise_grid: NoiseGrid
     box_dtype = small_int(int(np.max(grid.cells))) if compact else jnp.int32
     per_row = (1 if policy is not None else system.num_actions) * noise_grid.num_bounded
     _require_memory(grid, rows.size, per_row, np.dtype(box_dtype).itemsize)
+    from .structured import expanded_boxes, pays_off, structured_clusters
+
+    if structured or (structured is None and pays_off(system, grid, noise_grid)):
+        _, pieces, _, _ = structured_clusters(system, grid, noise_grid, method=method, policy=policy, progress=progress,
+                                              mesh=mesh)
+        return GridClusters(rows=rows, boxes=expanded_boxes(pieces, np.dtype(box_dtype).name), prob=prob,
+                            prob_rest=prob_rest)
     decode = functools.partial(_decode, dtype=np.dtype(box_dtype).name)
     boxes = snapped_boxes(system, grid, rows, actions, w_lo, w_hi, decode, method=method, progress=progress,
                           mesh=mesh)

@@ -179,6 +179,21 @@ def structured_clusters(system: System, grid: StateGrid, noise_grid: NoiseGrid, 
     return rows, clusters, prob, prob_rest
 
 
+def expanded_boxes(clusters: StructuredClusters, dtype: str = "int32") -> IndexBoxes:
+    """The ``(R, A, C_b)`` index boxes of ``clusters`` with starts and lengths of type ``dtype``
+    (as ``compute_grid_clusters`` returns them), expanded in chunks of rows."""
+    from .imdp import row_chunks
+
+    parts = [_expand(chunk, dtype) for chunk in row_chunks(clusters)]
+    return parts[0] if len(parts) == 1 else jax.tree.map(lambda *a: jnp.concatenate(a), *parts)
+
+
+@functools.partial(jax.jit, static_argnames="dtype")
+def _expand(clusters: StructuredClusters, dtype: str) -> IndexBoxes:
+    boxes = clusters.index_boxes()
+    return IndexBoxes(start=boxes.start.astype(dtype), length=boxes.length.astype(dtype), sink=boxes.sink)
+
+
 @jax.jit
 def _longest(length):
     return jnp.max(length.reshape(-1, length.shape[-1]), axis=0)

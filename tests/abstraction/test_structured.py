@@ -32,11 +32,15 @@ def _problems():
 @pytest.mark.parametrize("case", [0, 1])
 def test_structured_clusters_are_the_stored_index_boxes(case):
     system, grid, noise = _problems()[case]
-    stored = compute_grid_clusters(system, grid, noise, method="natural")
+    stored = compute_grid_clusters(system, grid, noise, method="natural", structured=False)
     smdp = SMDP.structured(system, grid, noise, method="natural")
+    via_pieces = compute_grid_clusters(system, grid, noise, method="natural", compact=True)
+    assert via_pieces.boxes.start.dtype == np.int8
     boxes = smdp.clusters.index_boxes()
     for field in ("start", "length", "sink"):
         np.testing.assert_array_equal(np.asarray(getattr(boxes, field)), np.asarray(getattr(stored.boxes, field)))
+        np.testing.assert_array_equal(np.asarray(getattr(via_pieces.boxes, field)),
+                                      np.asarray(getattr(stored.boxes, field)))
     reference = SMDP.from_clusters(grid, stored, encoding="boxes")
     assert smdp.clusters.shape == reference.clusters.shape
     assert smdp.clusters.spec == reference.clusters.spec
