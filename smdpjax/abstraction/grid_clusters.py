@@ -181,7 +181,9 @@ def _require_memory(grid: StateGrid, rows: int, per_row: int, int_bytes: int = 4
     chunk = min(boxes, BOXES_PER_CHUNK) * grid.n * 8 * 8  # ends, flags, codes and the pieces between
     require(stored + chunk, f"the clusters of {rows} cells x {per_row} (action, noise cell) pairs "
             f"({boxes:.3g} reachable boxes)",
-            "use a coarser state grid, fewer noise cells or actions, or a fixed policy (policy=)")
+            "use a coarser state grid, fewer noise cells or actions, a fixed policy (policy=), structured "
+            "clusters for additive noise (System.additive; abstract(..., 'smdp', encoding='structured') stores "
+            "O(cells x actions x cells per noise axis)), or split the rows over several devices (mesh=)")
 
 
 def _chunk_fn(dynamics, grid: StateGrid, method: str, noise_open: bool):
