@@ -20,6 +20,15 @@ from pathlib import Path
 from .common import argument_parser, median, write_result
 
 
+def tree_has_compact() -> bool:
+    """Whether this process's smdpjax stores SMDP boxes compact from the start (4b44535 on)."""
+    import inspect
+
+    from smdpjax.abstraction import compute_grid_clusters
+
+    return "compact" in inspect.signature(compute_grid_clusters).parameters
+
+
 def measure(row: int, repeats: int) -> dict:
     """Medians over ``repeats`` warm runs of one row (in this process's smdpjax)."""
     import jax
@@ -34,8 +43,9 @@ def measure(row: int, repeats: int) -> dict:
     runs = []
     for _ in range(repeats + 1):
         wall, cpu = time.perf_counter(), time.process_time()
+        options = {"compact": True} if spec.kind == "smdp" and tree_has_compact() else {}  # as abstract() does
         clusters = compute_grid_clusters(study.system, study.state_grid, study.noise_grid, method=study.reach_method,
-                                         policy=study.controller)
+                                         policy=study.controller, **options)
         jax.block_until_ready(clusters.boxes.start)
         mid_wall, mid_cpu = time.perf_counter(), time.process_time()
         jax.block_until_ready(build(spec.kind, study.state_grid, clusters))

@@ -106,7 +106,8 @@ def run_row(row: int, args) -> dict:
     stage = lambda fn: timed_stage(fn, args.repeats, args.cold_cap)
     clusters, t_reach, runs, warm = stage(lambda: compute_grid_clusters(study.system, study.state_grid,
                                                                         study.noise_grid, policy=policy,
-                                                                        method=study.reach_method))
+                                                                        method=study.reach_method,
+                                                                        compact=spec.kind == "smdp"))
     save(STAGES[1], t_reach_s=t_reach, t_reach_runs=runs, t_reach_warm=warm)
     options = {"lp_backend": args.lp_backend} if spec.kind == "mimdp" else {}
     abstraction, t_build, runs, warm = stage(lambda: build(spec.kind, study.state_grid, clusters, **options))
