@@ -57,6 +57,8 @@ _LP_LOCK_STRIPES = 64
 # ``Highs.passModel`` codes: row-wise matrix (``MatrixFormat.kRowwise``), ``ObjSense.kMinimize``
 _HIGHS_ROWWISE, _HIGHS_MINIMIZE = 2, 1
 BACKENDS = ("clarabel", "highs")
+# Solver statuses of an optimal (or, for Clarabel, an optimal up to its reduced tolerances) solve
+_OPTIMAL = frozenset({"Solved", "AlmostSolved", "Optimal"})
 
 
 class ClusterLPs:
@@ -78,12 +80,21 @@ class ClusterLPs:
         threads: LPs solved concurrently.
         max_cached_solvers: Clarabel solvers kept between calls (~0.5 MB each for LPs of ~170
             variables); the other LPs are set up again at every call (about +25% time).
+        names: optional ``(P, 2)`` (cell, action) of each LP, for the warning about LPs that the
+            solver did not solve (see `failures`).
+
+    An LP that ends without an optimum (infeasible, numerical failure, iteration limit) keeps
+    the multipliers the solver returned, clipped at 0: the bound they certify is still sound
+    (weak duality holds for any nonnegative multipliers) but may be loose. Each call that meets
+    such LPs warns once, naming the first of them (cell, action, solver status) and how many
+    there were; ``failures`` keeps the last 100 as ``(lp, status)`` and ``stats["failed"]``
+    counts them all.
     """
 
     def __init__(self, succ, lower, upper, rest, slots, cluster_lower, cluster_upper, num_states, *,
                  backend: str = "clarabel", block_size: int = 1, max_buckets: int = 16,
                  settings: dict | None = None, threads: int = 1, cache_size: int = 4,
-                 max_cached_solvers: int = 2048):
+                 max_cached_solvers: int = 2048, names=None):
         if backend not in BACKENDS:
             raise ValueError(f"unknown LP backend {backend!r}; expected one of {BACKENDS}")
         _import(backend)  # fail early if it is missing
@@ -115,6 +126,8 @@ class ClusterLPs:
         self._lp_locks = tuple(threading.Lock() for _ in range(_LP_LOCK_STRIPES))
         self._executor = None
         self.stats = collections.Counter()
+        self.names = None if names is None else np.asarray(names)
+        self.failures = collections.deque(maxlen=100)
         self._build(np.asarray(lower, np.float64), np.asarray(upper, np.float64), np.asarray(slots),
                     np.asarray(cluster_lower, np.float64), np.asarray(cluster_upper, np.float64), int(max_buckets))
 
@@ -405,13 +418,33 @@ class ClusterLPs:
         tasks = list(tasks)
         if self.threads > 1 and len(tasks) > 1 and np.unique(ids).size == ids.size:
             share = lambda t: [run(task) for task in tasks[t::self.threads]]
-            statuses = [s for part in self._pool().map(share, range(self.threads)) for s in part]
+            parts = self._pool().map(share, range(self.threads))
+            statuses = [None] * len(tasks)
+            for t, part in enumerate(parts):
+                statuses[t::self.threads] = part
         else:
             statuses = [run(task) for task in tasks]
         self.stats.update(statuses)
+        self._report([ids[t] if isinstance(t, (int, np.integer)) else ids[t[0]] for t in tasks], statuses)
         self.stats["solve_seconds"] += time.perf_counter() - start
         self.stats["calls"] += 1
         return lam.reshape(*shape, self.num_clusters, 2)
+
+    def _report(self, first_lps, statuses):
+        """Warn about solves that ended without an optimum (``first_lps``: the first LP of each)."""
+        failed = [(int(p), st) for p, st in zip(first_lps, statuses) if st not in _OPTIMAL]
+        if not failed:
+            return
+        with self._lock:
+            self.stats["failed"] += len(failed)
+            self.failures.extend(failed)
+        p, status = failed[0]
+        where = f"LP {p}" if self.names is None else f"the LP of cell {int(self.names[p][0])}, action {int(self.names[p][1])}"
+        import warnings
+
+        warnings.warn(f"MI-MDP: {where} ended with solver status {status!r} ({len(failed)} of {len(statuses)} "
+                      f"solves in this backup did not reach an optimum; ClusterLPs.failures lists them). Their "
+                      f"multipliers still certify a sound bound, which may be loose.", RuntimeWarning, stacklevel=3)
 
     @staticmethod
     def _solve_clarabel(block, costs, out):

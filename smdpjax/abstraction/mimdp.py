@@ -206,7 +206,9 @@ class MIMDP(AbstractionMixin):
         flat = lambda a: a.reshape(num_rows * num_actions, *a.shape[2:])
         lps = ClusterLPs(flat(succ), flat(lower), flat(upper), rest, flat(slots), flat(clo), flat(cup),
                          grid.num_states, backend=lp_backend, block_size=block_size, max_buckets=max_buckets,
-                         settings=solver_settings, threads=threads or min(8, os.cpu_count() or 1))
+                         settings=solver_settings, threads=threads or min(8, os.cpu_count() or 1),
+                         names=np.stack([np.repeat(np.asarray(imdp.rows), num_actions),
+                                         np.tile(np.arange(num_actions), num_rows)], axis=1))
         lp_index = np.arange(num_rows * num_actions, dtype=np.int32).reshape(num_rows, num_actions)
         screen = SMDP.from_clusters(grid, clusters) if screen_actions else None
         return cls(relaxation=imdp, cluster_slots=jnp.asarray(slots), cluster_lower=jnp.asarray(clo),

@@ -1,5 +1,7 @@
 """MI-MDP abstraction (Definition 5 with informed clusters): bounds, inner problem, Theorem 2."""
 
+import warnings
+
 import cvxpy as cp
 import jax
 import jax.numpy as jnp
@@ -607,3 +609,29 @@ def test_frozen_sweeps_reach_the_values_of_an_lp_at_every_sweep(unicycle_12):
     for name in ("lower", "lower_optimal", "upper"):
         np.testing.assert_allclose(np.asarray(getattr(sols[True], name)), np.asarray(getattr(sols[False], name)),
                                    rtol=0, atol=1e-6, err_msg=name)
+
+
+@pytest.mark.parametrize("backend", ["clarabel", "highs"])
+def test_unsolved_lps_are_reported_with_their_cell_and_action(backend):
+    if backend == "highs":
+        pytest.importorskip("highspy")
+    system = sj.System(unicycle, actions=(np.arange(4) * np.pi / 2)[:, None], noise=sj.Gaussian([0.0, 0.0], [0.3, 0.3]))
+    grid = sj.StateGrid([0, 0], [1, 1], 6, reach=[([2 / 3, 2 / 3], [1.0, 1.0])])
+    noise = sj.NoiseGrid.ball([0.0, 0.0], 0.9, 3)
+    clusters = compute_grid_clusters(system, grid, noise)
+    solved = MIMDP.from_clusters(grid, clusters, lp_backend=backend, screen_actions=False)
+    limit = {"max_iter": 1} if backend == "clarabel" else {"simplex_iteration_limit": 0}
+    starved = MIMDP.from_clusters(grid, clusters, lp_backend=backend, screen_actions=False, solver_settings=limit)
+    v = jnp.asarray(np.random.default_rng(0).random(grid.num_states))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # solved LPs: no warning
+        good = np.asarray(solved.q_values(v))
+    assert solved.lps.stats["failed"] == 0
+    with pytest.warns(RuntimeWarning, match=r"the LP of cell \d+, action \d+ ended with solver status"):
+        loose = np.asarray(starved.q_values(v))
+    assert starved.lps.stats["failed"] > 0
+    p, status = starved.lps.failures[0]
+    cell, action = starved.lps.names[p]
+    assert cell == int(np.asarray(starved.rows)[p // system.num_actions]) and action == p % system.num_actions
+    # still sound: never above the values of the solved LPs (each a valid lower bound on the true min)
+    assert np.all(loose <= good + 1e-8)
