@@ -34,7 +34,7 @@ from .base import AbstractionMixin, check_adversary
 from .clusters import IndexBoxes, cluster_members, lengths_of, max_lengths, small_int
 from .grid_clusters import GridClusters
 from .imdp import row_chunks
-from .range_min import RangeSpec, build_table, query_table
+from .range_min import RangeSpec, build_table, loop_variant_zero, query_table
 
 ENCODINGS = ("auto", "boxes", "members", "structured")
 
@@ -121,7 +121,7 @@ class BoxClusters:
         # v[:N] is the grid array (C order over spec.cells); v[N] is the sink. A box that misses
         # the grid yields the identity (+inf / -inf), so only its sink term counts.
         table = build_table(v[:-1], self.spec, op)
-        in_grid = query_table(table, self.start, self.length, self.spec, op)
+        in_grid = query_table(table, self.start, self.length, self.spec, op, anchor=loop_variant_zero(v))
         # min(in_grid, v[N] if sink): written as one select on in_grid, so that XLA fuses it into
         # the gathers' loop instead of materializing a (R, A, C_b) array of sink terms
         worse = v[-1] < in_grid if minimize else v[-1] > in_grid

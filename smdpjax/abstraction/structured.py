@@ -29,7 +29,7 @@ from ..partition import NoiseGrid, StateGrid
 from ..system import System
 from .clusters import IndexBoxes, decode_dimensions, lengths_of, small_int
 from .grid_clusters import _require_memory, policy_actions, snapped_boxes, validate
-from .range_min import RangeSpec, build_table, query_table
+from .range_min import RangeSpec, build_table, loop_variant_zero, query_table
 
 
 def noise_axes(system: System) -> np.ndarray:
@@ -110,14 +110,18 @@ class StructuredClusters:
         piece = a[:, :, :k, d].reshape(lead + tuple(one))
         return jnp.broadcast_to(piece, lead + tuple(self.noise_shape)).reshape(lead + (-1,))
 
-    def pieces(self):
+    def pieces(self, anchor=None):
         """Per dimension, the ``(R, A, C_b)`` starts and lengths of every cluster's index box,
         and the ``(R, A, C_b)`` sink flags (as `decode_boxes`: a box that misses the grid along
-        one dimension is the sink alone)."""
+        one dimension is the sink alone). ``anchor``: see ``range_min.loop_variant_zero``."""
         dims = range(self.spec.n)
-        starts, lengths = [self._spread(self.start, d) for d in dims], [self._spread(self.length, d) for d in dims]
+        start, length, leave = self.start, self.length, self.leave
+        if anchor is not None:
+            start, length = start + anchor.astype(start.dtype), length + anchor.astype(length.dtype)
+            leave = leave | (anchor != 0)
+        starts, lengths = [self._spread(start, d) for d in dims], [self._spread(length, d) for d in dims]
         empty = jnp.any(jnp.stack([n == 0 for n in lengths]), axis=0)
-        leave = jnp.any(jnp.stack([self._spread(self.leave, d) for d in dims]), axis=0)
+        leave = jnp.any(jnp.stack([self._spread(leave, d) for d in dims]), axis=0)
         return starts, lengths, leave | empty
 
     def index_boxes(self) -> IndexBoxes:
@@ -137,7 +141,7 @@ class StructuredClusters:
     def extreme(self, v, minimize: bool):
         """min (or max) of ``v (N+1,)`` over every cluster: ``(R, A, C_b)``."""
         op = "min" if minimize else "max"
-        starts, lengths, sink = self.pieces()
+        starts, lengths, sink = self.pieces(loop_variant_zero(v))
         in_grid = query_table(build_table(v[:-1], self.spec, op), starts, lengths, self.spec, op)
         worse = v[-1] < in_grid if minimize else v[-1] > in_grid
         return jnp.where(sink & worse, v[-1], in_grid)
