@@ -37,6 +37,8 @@ def noise_axes(system: System) -> np.ndarray:
 
     Raises ValueError unless ``system`` was declared with ``System.additive`` and every row of
     its ``B`` has exactly one nonzero (what structured clusters need)."""
+    if not isinstance(system, System):
+        raise TypeError(f"system must be a smdpjax.System, got {type(system).__name__}")
     if not system.is_additive:
         raise ValueError("structured clusters need additive noise declared with System.additive(g, B, ...): "
                          "x' = g(x, u) + B w")
@@ -53,7 +55,7 @@ def pays_off(system: System, grid: StateGrid, noise_grid: NoiseGrid) -> bool:
     costs 1.1-1.4x, their abstraction 4-7x less time (``benchmarks/structured_clusters.py``)."""
     try:
         noise_axes(system)
-    except ValueError:
+    except (TypeError, ValueError):  # not for structured clusters (a wrong type is reported later)
         return False
     stored = noise_grid.num_bounded * (2 * grid.n + 1)  # bytes per (cell, action), int8 starts
     structured = max(noise_grid.shape) * 3 * grid.n
