@@ -23,7 +23,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 from . import abstraction, gradients, metrics, partition, reach, specification, sweep, synthesis  # noqa: E402
-from .abstraction import IMDP, KINDS, MIMDP, SMDP, TwoLayerIMDP, abstract  # noqa: E402
+from .abstraction import IMDP, KINDS, MIMDP, SMDP, CompactIMDP, TwoLayerIMDP, abstract  # noqa: E402
 from .noise import Distribution, Gaussian, Uniform  # noqa: E402
 from .partition import AVOID, NONTERMINAL, REACH, NoiseGrid, StateGrid  # noqa: E402
 from .simulation import Controller, SimulationResult, simulate, uniform_in_cells  # noqa: E402
@@ -35,7 +35,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "System", "Distribution", "Gaussian", "Uniform", "StateGrid", "NoiseGrid", "NONTERMINAL", "REACH", "AVOID",
-    "abstract", "KINDS", "IMDP", "TwoLayerIMDP", "MIMDP", "SMDP", "synthesize", "verify", "Solution", "Controller", "simulate",
+    "abstract", "KINDS", "IMDP", "CompactIMDP", "TwoLayerIMDP", "MIMDP", "SMDP", "synthesize", "verify", "Solution", "Controller", "simulate",
     "SimulationResult", "uniform_in_cells", "abstraction", "gradients", "metrics", "partition", "reach", "sweep",
     "synthesis", "specification", "DFA", "Region", "Specification", "synthesize_product", "verify_product",
     "ProductSolution", "ProductController", "simulate_product",

@@ -55,7 +55,8 @@ __all__ = ["row_mesh", "shard_abstraction", "unshard_abstraction", "row_sharding
            "GLOBAL_FIELDS"]
 
 # Fields that are global even if their leading size happens to equal the row count R.
-GLOBAL_FIELDS = frozenset({"labels", "cells_of", "prob", "prob_rest", "upper_rest"})
+GLOBAL_FIELDS = frozenset({"labels", "cells_of", "prob", "prob_rest", "upper_rest",
+                           "chunk_succ", "chunk_slot", "chunk_upper", "chunk_row"})  # chunked lists: replicated
 
 _TRACER = getattr(jax.core, "Tracer", ())
 

@@ -60,6 +60,7 @@ import numpy as np
 
 from .abstraction.clusters import index_dtype
 from .abstraction.imdp import IMDP
+from .abstraction.imdp_compact import CompactIMDP
 from .partition import AVOID, NONTERMINAL, REACH
 
 __all__ = ["to_drn", "from_drn", "drn_string", "reach_avoid_formula", "storm_model", "storm_values"]
@@ -77,10 +78,13 @@ def to_drn(imdp: IMDP, path_or_file, *, reach_label: str = "reach", avoid_label:
     """Write ``imdp`` in Storm's explicit DRN format with interval probabilities.
 
     Args:
-        imdp: an ``IMDP`` (any number of actions, e.g. ``imdp.restrict(actions)`` for one).
+        imdp: an ``IMDP`` or ``CompactIMDP`` (what ``abstract(..., "imdp")`` returns; any number of
+            actions, e.g. ``imdp.restrict(actions)`` for one).
         path_or_file: a path, or a text file object open for writing.
         reach_label, avoid_label: the state labels of reach states and of avoid states and the sink.
     """
+    if isinstance(imdp, CompactIMDP):
+        imdp = imdp.padded()
     if not isinstance(imdp, IMDP):
         raise TypeError(f"to_drn writes an IMDP, got {type(imdp).__name__}")
     for label in (reach_label, avoid_label):

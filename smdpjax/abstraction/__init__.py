@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import warnings
 
-import jax.numpy as jnp
-
 from ..partition import NoiseGrid, StateGrid
 from ..system import System
 from .base import AbstractionMixin
@@ -19,12 +17,15 @@ from .clusters import IndexBoxes, cluster_members, index_boxes
 from .direct import direct_imdp
 from .grid_clusters import GridClusters, compute_grid_clusters
 from .imdp import IMDP, interval_min
+from .imdp_compact import CompactIMDP
 from .mimdp import MIMDP
 from .smdp import SMDP
 from .structured import pays_off
 from .twolayer import TwoLayerIMDP
 
-_BUILDERS = {"imdp": IMDP, "2imdp": TwoLayerIMDP, "mimdp": MIMDP, "smdp": SMDP}
+# kind="imdp" builds the compact storage (rows bucketed by width, sparse lower bounds); the padded
+# ``IMDP`` stays the storage of the MI-MDP's relaxation, direct bounds, gradients and Storm imports.
+_BUILDERS = {"imdp": CompactIMDP, "2imdp": TwoLayerIMDP, "mimdp": MIMDP, "smdp": SMDP}
 KINDS = ("imdp", "2imdp", "mimdp", "smdp")
 
 
@@ -33,7 +34,7 @@ def build(kind: str, grid: StateGrid, clusters: GridClusters, **options):
     if kind not in _BUILDERS:
         raise ValueError(f"unknown abstraction kind {kind!r}; expected one of {KINDS}")
     abstraction = _BUILDERS[kind].from_clusters(grid, clusters, **options)
-    if kind == "imdp" and not bool(jnp.any(abstraction.lower > 0)):
+    if kind == "imdp" and not abstraction.any_positive_lower():
         warnings.warn("IMDP: every lower transition bound is 0 (no reachable set of any cell, action and noise "
                       "cell lies inside one state), so the adversary may move all mass anywhere the upper bounds "
                       "allow and p_low is 0 except where they force mass into the goal. Finer noise cells or "
@@ -104,5 +105,5 @@ def abstract(system: System, state_grid: StateGrid, noise_grid: NoiseGrid | None
     return shard_abstraction(abstraction, mesh)
 
 
-__all__ = ["abstract", "build", "direct_imdp", "KINDS", "IMDP", "SMDP", "TwoLayerIMDP", "MIMDP", "AbstractionMixin",
+__all__ = ["abstract", "build", "direct_imdp", "KINDS", "IMDP", "CompactIMDP", "SMDP", "TwoLayerIMDP", "MIMDP", "AbstractionMixin",
            "GridClusters", "IndexBoxes", "compute_grid_clusters", "cluster_members", "index_boxes", "interval_min"]

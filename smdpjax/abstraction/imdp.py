@@ -97,6 +97,16 @@ class IMDP(AbstractionMixin):
     def num_actions(self) -> int:
         return int(self.successors.shape[1])
 
+    def any_positive_lower(self) -> bool:
+        """Whether any transition has a positive lower bound."""
+        return bool(jnp.any(self.lower > 0))
+
+    def compact(self):
+        """The same abstraction stored without padding (``imdp_compact.CompactIMDP``)."""
+        from .imdp_compact import CompactIMDP
+
+        return CompactIMDP.from_imdp(self)
+
     @property
     def summands_per_backup(self) -> float:
         # listed successors twice (lower-bound part and fill), plus the unlisted states' prefix sum
@@ -167,6 +177,16 @@ def interval_min(w, succ, lower, upper, upper_rest):
     def mass(k):  # mass placed once the k lowest-ranked states are at their upper bounds
         return base_mass + upper_rest * k + column_sum(lambda i: jnp.where(r[i] < each(k), extra[i], 0.0))
 
+    k_star = first_rank_filling(mass, base_mass.shape, n_states)
+    j = jnp.maximum(k_star - 1, 0)  # the state that is filled only partly
+    full = upper_rest * prefix[j] + column_sum(lambda i: jnp.where(r[i] < each(j), extra[i] * w_i[i], 0.0))
+    partial = jnp.where(k_star > 0, (1.0 - mass(j)) * w_sorted[j], 0.0)
+    return column_sum(lambda i: lo[i] * w_i[i]) + jnp.where(k_star > 0, full + partial, 0.0)
+
+
+def first_rank_filling(mass, shape, n_states: int):
+    """``(shape)`` int32 the least ``k`` in ``0..n_states`` with ``mass(k) >= 1`` (``n_states``
+    if none), by bisection; ``mass`` is nondecreasing in ``k``, maps ``shape`` to ``shape``."""
     def bisect(_, bounds):
         lo_k, hi_k = bounds
         mid = (lo_k + hi_k) // 2
@@ -174,12 +194,8 @@ def interval_min(w, succ, lower, upper, upper_rest):
         return jnp.where(enough, lo_k, mid + 1), jnp.where(enough, mid, hi_k)
 
     steps = int(n_states).bit_length()  # each step at least halves hi - lo (n_states at first)
-    zeros = jnp.zeros(base_mass.shape, jnp.int32)
-    _, k_star = jax.lax.fori_loop(0, steps, bisect, (zeros, zeros + n_states))
-    j = jnp.maximum(k_star - 1, 0)  # the state that is filled only partly
-    full = upper_rest * prefix[j] + column_sum(lambda i: jnp.where(r[i] < each(j), extra[i] * w_i[i], 0.0))
-    partial = jnp.where(k_star > 0, (1.0 - mass(j)) * w_sorted[j], 0.0)
-    return column_sum(lambda i: lo[i] * w_i[i]) + jnp.where(k_star > 0, full + partial, 0.0)
+    zeros = jnp.zeros(shape, jnp.int32)
+    return jax.lax.fori_loop(0, steps, bisect, (zeros, zeros + n_states))[1]
 
 
 def row_chunks(tree, size: int = _ROWS_PER_CHUNK):

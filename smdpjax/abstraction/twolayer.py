@@ -24,11 +24,19 @@ Blocks that no bounded reachable set meets (only the remainder can put mass ther
 in aggregate through a sorted list of the blocks' lowest ranks. Per iteration:
 O(N log N + B S log S + R A T S) once, then O(R A T log S) per bisection step (log N steps),
 T the blocks a row meets, S the cells per block.
+
+Storage: the fine layer is kept sparse (per row and action the listed successors' slots
+``t S + i`` and upper bounds, in fixed-width chunks as in ``imdp_compact``, the positive lower
+bounds as pairs); every backup lays the met blocks' capacities out in rank order (``upper_rest``
+on every cell, the listed bounds scattered over it) before the greedy, so only that transient,
+not the stored abstraction, has the ``(R, A, T, S)`` shape (row 38: 179 MB stored instead of
+2211 MB).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -37,8 +45,10 @@ import numpy as np
 from .._pytree import pytree_dataclass, static_field
 from .base import AbstractionMixin, check_adversary
 from .box_bounds import region_bounds
+from .clusters import index_dtype
 from .grid_clusters import GridClusters
-from .imdp import IMDP
+from .imdp_compact import chunk_layout, lower_slots, to_chunks
+
 
 
 def block_layout(grid, block) -> tuple[np.ndarray, np.ndarray]:
@@ -73,103 +83,264 @@ def default_block(clusters: GridClusters) -> tuple:
 
 @pytree_dataclass
 class TwoLayerIMDP(AbstractionMixin):
-    """Attributes (T = blocks a row meets, S = cells per block, B = number of blocks):
-        blocks: ``(R, A, T)`` int32 coarse blocks met (sink block ``B``), padded with ``B + 1``.
+    """Attributes (T = blocks a row meets, S = cells per block, B = number of blocks; the fine
+    entries in ``C`` chunks of ``W`` slots, row ``r`` owning ``ceil(entries_r / W)`` consecutive
+    ones, as in ``imdp_compact``):
+        blocks: ``(R, A, T)`` int16/int32 coarse blocks met, in increasing order (sink block
+            ``B``), padded with ``B + 1``.
         block_lower, block_upper: ``(R, A, T)`` coarse bounds L_B, U_B.
-        lower, upper: ``(R, A, T, S)`` fine bounds of the cells of those blocks (cells that no
-            bounded reachable set meets have ``[0, upper_rest]``).
+        chunk_slot: ``(C, A, W)`` int16/int32 slots ``t S + i`` (cell ``i`` of block slot ``t``)
+            of the listed fine successors (those a bounded reachable set meets), padded with ``T S``.
+        chunk_upper: ``(C, A, W)`` their upper bounds (``upper_rest`` included); every other cell
+            of a met block has ``[0, upper_rest]``.
+        chunk_row: ``(C,)`` int32 the row of each chunk, nondecreasing.
+        lower_slot, lower_value: ``(R, A, L)`` the positive fine lower bounds (slots as
+            ``chunk_slot``, padding ``T S``).
         cells_of: ``(B + 1, S)`` int32 cells of every block, padded with ``N + 1``.
         upper_rest: P_W(remainder): upper bound of every state and every block.
         rows, labels: as in every abstraction.
-        imdp: the fine-layer IMDP (a relaxation: its ambiguity set contains this one's).
+        list_rows: rows that own chunks (``R`` until sharding pads the row arrays).
+
+    ``lower``, ``upper`` ``(R, A, T, S)`` are the dense fine bounds (built on access).
     """
 
     blocks: jax.Array
     block_lower: jax.Array
     block_upper: jax.Array
-    lower: jax.Array
-    upper: jax.Array
+    chunk_slot: jax.Array
+    chunk_upper: jax.Array
+    chunk_row: jax.Array
+    lower_slot: jax.Array
+    lower_value: jax.Array
     cells_of: jax.Array
     upper_rest: jax.Array
     rows: jax.Array
     labels: jax.Array
     block_shape: tuple = static_field(default=())
+    list_rows: int = static_field(default=0)
     kind: str = static_field(default="2imdp")
 
     @classmethod
-    def from_clusters(cls, grid, clusters: GridClusters, block=None) -> "TwoLayerIMDP":
+    def from_clusters(cls, grid, clusters: GridClusters, block=None, *, chunk: int | None = None) -> "TwoLayerIMDP":
+        """Lemma 1 on both layers from the clusters' index boxes; ``block``: cells per block and
+        dimension (default ``default_block``), ``chunk``: slots per chunk of the fine entries
+        (default ``imdp_compact.chunk_width`` of their counts)."""
         block = default_block(clusters) if block is None else tuple(np.broadcast_to(np.asarray(block), (grid.n,)))
         block_of, cells_of = block_layout(grid, block)
         num_blocks = cells_of.shape[0] - 1
-        block_of_j = jnp.asarray(block_of)
         blocks, block_lower, block_upper = region_bounds(grid.cells, grid.periodic, clusters.boxes, clusters.prob,
                                                          block=block)
         rest = jnp.asarray(clusters.prob_rest)
         met = blocks <= num_blocks
         block_upper = jnp.where(met, block_upper + rest, 0.0)
-
-        fine = IMDP.from_clusters(grid, clusters)
-        lower, upper = _fine_bounds_by_block(fine.successors, fine.lower, fine.upper, blocks,
-                                             jnp.asarray(cells_of), block_of_j, rest)
-        return cls(blocks=blocks, block_lower=block_lower, block_upper=block_upper, lower=lower, upper=upper,
-                   cells_of=jnp.asarray(cells_of), upper_rest=rest, rows=fine.rows, labels=fine.labels,
-                   block_shape=tuple(int(b) for b in block))
+        met_count = max(1, int(jnp.max(jnp.sum(met, axis=-1), initial=1)))
+        blocks, block_lower, block_upper = blocks[..., :met_count], block_lower[..., :met_count], \
+            block_upper[..., :met_count]
+        succ, lower, upper = region_bounds(grid.cells, grid.periodic, clusters.boxes, clusters.prob)
+        sentinel = grid.num_states  # N + 1 (N cells and the sink)
+        upper = jnp.where(succ < sentinel, upper + rest, 0.0)
+        size = cells_of.shape[1]
+        offset_of = np.zeros(sentinel + 1, np.int32)  # each state's cell slot in its block
+        valid = cells_of <= grid.sink
+        offset_of[cells_of[valid]] = np.nonzero(valid)[1]
+        slot = _fine_slots(succ, blocks, jnp.asarray(block_of), jnp.asarray(offset_of), size)
+        slot = slot.astype(index_dtype(met_count * size + 1))
+        listed = succ < sentinel
+        widths = np.maximum(np.asarray(jnp.sum(listed, axis=-1).max(axis=1)), 1)
+        chunk_row, within, w, most = chunk_layout(widths, chunk)
+        row_j, within_j = jnp.asarray(chunk_row), jnp.asarray(within)
+        num_lower = int(jnp.max(jnp.sum((lower > 0) & listed, axis=-1), initial=0))
+        l_at = lower_slots((lower > 0) & listed, num_lower)
+        k = succ.shape[-1]
+        has = l_at < k
+        l_slot = jnp.where(has, jnp.take_along_axis(slot, jnp.minimum(l_at, k - 1), axis=-1), met_count * size)
+        l_value = jnp.where(has, jnp.take_along_axis(lower, jnp.minimum(l_at, k - 1), axis=-1), 0.0)
+        return cls(blocks=blocks.astype(index_dtype(num_blocks + 2)), block_lower=block_lower,
+                   block_upper=block_upper,
+                   chunk_slot=to_chunks(slot, row_j, within_j, w, most, met_count * size),
+                   chunk_upper=to_chunks(jnp.where(listed, upper, 0.0), row_j, within_j, w, most, 0.0),
+                   chunk_row=row_j, lower_slot=l_slot.astype(slot.dtype), lower_value=l_value,
+                   cells_of=jnp.asarray(cells_of), upper_rest=rest, rows=jnp.asarray(clusters.rows, jnp.int32),
+                   labels=jnp.asarray(grid.state_labels), block_shape=tuple(int(b) for b in block),
+                   list_rows=int(widths.size))
 
     @property
     def num_actions(self) -> int:
         return int(self.blocks.shape[1])
 
     @property
+    def num_block_slots(self) -> int:
+        """``T``: block slots per list."""
+        return int(self.blocks.shape[2])
+
+    @property
+    def chunk(self) -> int:
+        """``W``: fine entries per chunk."""
+        return int(self.chunk_slot.shape[2])
+
+    @property
+    def num_chunks(self) -> int:
+        return int(self.chunk_slot.shape[0])
+
+    @property
     def summands_per_backup(self) -> float:
-        t, s = self.lower.shape[2:]
+        t, s = self.num_block_slots, self.cells_of.shape[1]
         return float(3 * t * s + self.cells_of.shape[0] * float(self.upper_rest))
 
     def restrict(self, actions) -> "TwoLayerIMDP":
         """The single-action 2I-MDP of a stationary strategy ``actions: (R,)``."""
-        pick = lambda a: jnp.take_along_axis(a, actions.reshape((-1, 1) + (1,) * (a.ndim - 2)), axis=1)
-        return dataclasses.replace(self, blocks=pick(self.blocks), block_lower=pick(self.block_lower),
-                                   block_upper=pick(self.block_upper), lower=pick(self.lower),
-                                   upper=pick(self.upper))
+        by_row, by_chunk = actions[:, None, None], actions[self.chunk_row][:, None, None]
+        pick = lambda a, act: jnp.take_along_axis(a, act, axis=1)
+        return dataclasses.replace(self, blocks=pick(self.blocks, by_row), block_lower=pick(self.block_lower, by_row),
+                                   block_upper=pick(self.block_upper, by_row),
+                                   chunk_slot=pick(self.chunk_slot, by_chunk),
+                                   chunk_upper=pick(self.chunk_upper, by_chunk),
+                                   lower_slot=pick(self.lower_slot, by_row), lower_value=pick(self.lower_value, by_row))
 
     def q_values(self, v, adversary: str = "min", actions=None):
         minimize = check_adversary(adversary)
-        arrays = (self.blocks, self.block_lower, self.block_upper, self.lower, self.upper)
-        if actions is not None:
-            arrays = tuple(jnp.take_along_axis(a, actions.reshape((-1, 1) + (1,) * (a.ndim - 2)), axis=1)[:, 0]
-                           for a in arrays)
         w = v if minimize else -v
-        value = two_layer_min(w, *arrays, self.cells_of, self.upper_rest)
+        rows = self.list_rows or self.num_rows
+        by_row = (self.blocks, self.block_lower, self.block_upper, self.lower_slot, self.lower_value)
+        by_chunk = (self.chunk_slot, self.chunk_upper)
+        if actions is not None:
+            pick = lambda a, act: jnp.take_along_axis(a, act[:, None, None], axis=1)[:, 0]
+            by_row = tuple(pick(a, actions) for a in by_row)
+            by_chunk = tuple(pick(a, actions[self.chunk_row]) for a in by_chunk)
+        blocks, block_lower, block_upper, lower_slot, lower_value = (a[:rows] for a in by_row)
+        value = _sparse_two_layer_min(w, block_ranking(w, self.cells_of), blocks, block_lower, block_upper,
+                                      *by_chunk, self.chunk_row, lower_slot, lower_value, self.cells_of,
+                                      self.upper_rest)
+        if self.num_rows > rows:  # rows padded by sharding repeat the last row
+            value = value[jnp.minimum(jnp.arange(self.num_rows), rows - 1)]
         return value if minimize else -value
 
+    def _dense_fine(self, lower: bool):
+        """``(R, A, T, S)`` dense fine bounds (``upper_rest`` on every cell of a met block for the
+        upper ones)."""
+        size = self.cells_of.shape[1]
+        rows = self.list_rows or self.num_rows
+        blocks = self.blocks[:rows].astype(jnp.int32)
+        cells = self.cells_of.at[blocks].get(mode="fill", fill_value=self.num_states)  # (R, A, T, S)
+        if lower:
+            return _scatter_slots(jnp.zeros(cells.shape), self.lower_slot[:rows], self.lower_value[:rows])
+        dense = jnp.where(cells < self.num_states, self.upper_rest, 0.0)
+        return _scatter_slots(dense, self.chunk_slot, self.chunk_upper, lead_rows=self.chunk_row)
+
+    @property
+    def lower(self):
+        return self._dense_fine(True)
+
+    @property
+    def upper(self):
+        return self._dense_fine(False)
+
     def __repr__(self):
-        r, a, t, s = self.lower.shape
+        r, a = self.num_rows, self.num_actions
         return (f"TwoLayerIMDP(|S|={self.num_states}, rows={r}, |A|={a}, block={'x'.join(map(str, self.block_shape))}"
-                f" ({self.cells_of.shape[0] - 1} blocks + sink), max blocks met={t}, memory={self.nbytes / 1e6:.2f} MB)")
+                f" ({self.cells_of.shape[0] - 1} blocks + sink), max blocks met={self.num_block_slots}, fine entries="
+                f"{self.num_chunks}x{self.chunk} slots, memory={self.nbytes / 1e6:.2f} MB)")
 
 
-@jax.jit
-def _fine_bounds_by_block(succ, lower, upper, blocks, cells_of, block_of, rest):
-    """Scatter the fine IMDP bounds ``(R, A, K)`` into the block layout ``(R, A, T, S)``."""
-    sentinel_state = block_of.shape[0] - 1  # N + 1: block_of covers the states and the sentinel
-    cells = cells_of.at[blocks].get(mode="fill", fill_value=sentinel_state)  # (R, A, T, S)
-    lo = jnp.zeros(cells.shape)
-    up = jnp.where(cells < sentinel_state, rest, 0.0)
-    # position of each listed successor in the layout: its block's slot in `blocks`, its cell's slot in the block
-    succ_block = block_of[jnp.minimum(succ, sentinel_state)]  # (R, A, K)
-    t_slot = jnp.argmax(blocks[..., None, :] == succ_block[..., :, None], axis=-1)  # (R, A, K)
-    s_slot = jnp.argmax(cells_of.at[succ_block].get(mode="fill", fill_value=-1) == succ[..., None], axis=-1)
-    listed = succ < sentinel_state
-    r, a, k = succ.shape
-    rr, aa = jnp.meshgrid(jnp.arange(r), jnp.arange(a), indexing="ij")
-    rr, aa = rr[..., None], aa[..., None]
-    t_slot = jnp.where(listed, t_slot, blocks.shape[-1])  # out of range: dropped
-    lo = lo.at[rr, aa, t_slot, s_slot].set(lower, mode="drop")
-    up = up.at[rr, aa, t_slot, s_slot].set(upper, mode="drop")
-    return lo, up
+@functools.partial(jax.jit, static_argnums=4)
+def _fine_slots(succ, blocks, block_of, offset_of, size: int):
+    """``(R, A, K)`` slot ``t S + i`` of each listed successor: ``t`` its block's slot in the row's
+    sorted ``blocks``, ``i`` its cell's slot in the block; padding ``>= T S``."""
+    sentinel = block_of.shape[0] - 1
+    succ = succ.astype(jnp.int32)
+    succ_block = block_of[jnp.minimum(succ, sentinel)]
+    t = jax.vmap(lambda b, q: jnp.searchsorted(b, q))(blocks.reshape(-1, blocks.shape[-1]),
+                                                      succ_block.reshape(-1, succ.shape[-1])).reshape(succ.shape)
+    t_count = blocks.shape[-1]
+    return jnp.where(succ < sentinel, t * size + offset_of[jnp.minimum(succ, sentinel)], t_count * size)
+
+
+def _lead(shape, rows=None):
+    """Index arrays of the leading axes of entries ``(..., K)``, shaped to broadcast against the
+    last axis; with ``rows (C,)``, the first axis indexes through it (chunks -> their rows)."""
+    lead = list(jnp.indices(shape[:-1], sparse=True))
+    if rows is not None:
+        lead[0] = rows.reshape(lead[0].shape)
+    return tuple(i[..., None] for i in lead)
+
+
+def _scatter_slots(dense, slot, value, lead_rows=None):
+    """``dense (R, ..., T, S)`` with ``value (..., K)`` set at flat slots ``slot`` (out of range:
+    dropped); ``lead_rows (C,)``: the entries are chunks, ``slot``'s first axis maps to these rows."""
+    shape = dense.shape
+    flat = dense.reshape(shape[:-2] + (-1,))
+    idx = _lead(slot.shape, lead_rows) + (slot.astype(jnp.int32),)
+    return flat.at[idx].set(value, mode="drop").reshape(shape)
+
+
+def block_ranking(w, cells_of):
+    """What every list's inner problem shares, from one sort of ``w`` per backup: ``(rank,
+    w_sorted, within, sorted_rank, sorted_w, inverse, sorted_min_rank, block_prefix)``, every
+    block's cells in increasing rank (padding last; one extra all-padding block) and where each
+    cell slot lands in that order (``inverse``)."""
+    n_states = w.shape[0]
+    order = jnp.argsort(w, stable=True)
+    rank = jnp.zeros(n_states, jnp.int32).at[order].set(jnp.arange(n_states, dtype=jnp.int32))
+    w_sorted = w[order]
+    num_blocks, size = cells_of.shape
+    padded_cells = jnp.concatenate([cells_of, jnp.full((1, size), n_states, cells_of.dtype)])
+    cell_rank = rank.at[padded_cells].get(mode="fill", fill_value=n_states)  # (B+2, S)
+    within = jnp.argsort(cell_rank, axis=-1)
+    sorted_rank = jnp.take_along_axis(cell_rank, within, -1)
+    sorted_w = w.at[jnp.take_along_axis(padded_cells, within, -1)].get(mode="fill", fill_value=0.0)
+    inverse = jnp.zeros_like(within).at[jnp.arange(within.shape[0])[:, None], within].set(
+        jnp.broadcast_to(jnp.arange(size, dtype=within.dtype), within.shape))
+    sorted_min_rank = jnp.sort(sorted_rank[:num_blocks, 0])
+    block_prefix = jnp.concatenate([jnp.zeros(1), jnp.cumsum(w_sorted[jnp.minimum(sorted_min_rank, n_states - 1)])])
+    return dict(rank=rank, w_sorted=w_sorted, within=within, sorted_rank=sorted_rank, sorted_w=sorted_w,
+                inverse=inverse, sorted_min_rank=sorted_min_rank, block_prefix=block_prefix,
+                padded_cells=padded_cells)
+
+
+def _sparse_two_layer_min(w, ranking, blocks, block_lower, block_upper, fine_slot, fine_upper, chunk_row,
+                          lower_slot, lower_value, cells_of, upper_rest):
+    """``two_layer_min`` on the sparse, chunked fine layer: the capacities ``upper - lower`` of
+    the met blocks' cells are laid out in each block's rank order (``upper_rest`` on every cell,
+    the listed successors' bounds scattered over it), the lower bounds' sums taken from their
+    pairs; then the block greedy of ``_two_layer_sorted``.
+
+    Shapes: ``blocks, block_lower, block_upper (R, ..., T)``, ``fine_slot, fine_upper (C, ...,
+    W)`` chunks of the rows ``chunk_row (C,)``, ``lower_slot, lower_value (R, ..., L)`` (slots
+    ``t S + i``, padding ``>= T S``). Returns ``(R, ...)``.
+    """
+    n_states = w.shape[0]
+    num_blocks, size = cells_of.shape
+    t_count = blocks.shape[-1]
+    block_row = jnp.minimum(blocks.astype(jnp.int32), num_blocks)  # padding -> the all-padding block
+
+    def sorted_slot(slot, rows=None):  # flat slot t S + i -> t S + (i's place in block t's rank order)
+        slot = slot.astype(jnp.int32)
+        t = jnp.minimum(slot // size, t_count - 1)
+        place = ranking["inverse"][block_row[_lead(slot.shape, rows) + (t,)], slot % size]
+        return jnp.where(slot < t_count * size, t * size + place, t_count * size)
+
+    has_lower = lower_slot < t_count * size
+    lo = jnp.where(has_lower, lower_value, 0.0)
+    # capacities in rank order: upper_rest on every cell, the listed upper bounds, minus lower bounds
+    cap = jnp.where(ranking["sorted_rank"][block_row] < n_states, upper_rest, 0.0)
+    cap = _scatter_slots(cap, sorted_slot(fine_slot, chunk_row), fine_upper, lead_rows=chunk_row)
+    flat = cap.reshape(cap.shape[:-2] + (-1,))
+    lead = _lead(lower_slot.shape)
+    cap = flat.at[lead + (sorted_slot(lower_slot),)].add(-lo, mode="drop").reshape(cap.shape)
+    # per block met: sum of lower bounds and their cost
+    t_of = jnp.minimum(lower_slot.astype(jnp.int32) // size, t_count - 1)
+    lo_cell = ranking["padded_cells"][jnp.take_along_axis(block_row, t_of, axis=-1),
+                                      lower_slot.astype(jnp.int32) % size]
+    lo_w = w.at[lo_cell].get(mode="fill", fill_value=0.0)
+    zeros = jnp.zeros(blocks.shape)
+    sum_l = zeros.at[lead + (t_of,)].add(lo)
+    base = zeros.at[lead + (t_of,)].add(lo * lo_w)
+    return _two_layer_sorted(w, ranking, blocks, block_lower, block_upper, cap, sum_l, base, num_blocks, upper_rest)
 
 
 def two_layer_min(w, blocks, block_lower, block_upper, lower, upper, cells_of, upper_rest):
-    """``min sum gamma w`` over the two-layer polytope for every row (see the module docstring).
+    """``min sum gamma w`` over the two-layer polytope for every row (see the module docstring),
+    from dense fine bounds.
 
     Args:
         w: ``(N+1,)`` values.
@@ -177,32 +348,27 @@ def two_layer_min(w, blocks, block_lower, block_upper, lower, upper, cells_of, u
         cells_of: ``(B+1, S)``; upper_rest: scalar.
     Returns ``(...)``.
     """
-    n_states = w.shape[0]
-    order = jnp.argsort(w, stable=True)
-    rank = jnp.zeros(n_states, jnp.int32).at[order].set(jnp.arange(n_states, dtype=jnp.int32))
-    w_sorted = w[order]
-
-    # every block's cells in increasing rank (padding last, rank n_states); one extra all-padding
-    # block for the padding of `blocks`
-    num_blocks, size = cells_of.shape
-    padded_cells = jnp.concatenate([cells_of, jnp.full((1, size), n_states, cells_of.dtype)])
-    cell_rank = rank.at[padded_cells].get(mode="fill", fill_value=n_states)  # (B+2, S)
-    within = jnp.argsort(cell_rank, axis=-1)
-    sorted_rank = jnp.take_along_axis(cell_rank, within, -1)  # (B+2, S)
-    sorted_w = w.at[jnp.take_along_axis(padded_cells, within, -1)].get(mode="fill", fill_value=0.0)
-
-    # block order by lowest rank, with prefix sums of their cheapest value (for unmet blocks)
-    block_min_rank = sorted_rank[:num_blocks, 0]
-    sorted_min_rank = jnp.sort(block_min_rank)
-    block_prefix = jnp.concatenate([jnp.zeros(1), jnp.cumsum(w_sorted[jnp.minimum(sorted_min_rank, n_states - 1)])])
-
-    met = blocks < num_blocks
+    ranking = block_ranking(w, cells_of)
+    num_blocks = cells_of.shape[0]
     block_row = jnp.minimum(blocks, num_blocks)  # padding -> the all-padding block
     # Sums over a block do not depend on the order (and padding cells have zero bounds and
     # value); only the capacities are put in rank order, for their prefix sums.
     sum_l = lower.sum(-1)
-    base = (lower * w.at[padded_cells].get(mode="fill", fill_value=0.0)[block_row]).sum(-1)
-    cap = jnp.take_along_axis(upper - lower, within[block_row], -1)  # (..., T, S) in rank order
+    base = (lower * w.at[ranking["padded_cells"]].get(mode="fill", fill_value=0.0)[block_row]).sum(-1)
+    cap = jnp.take_along_axis(upper - lower, ranking["within"][block_row], -1)  # (..., T, S) in rank order
+    return _two_layer_sorted(w, ranking, blocks, block_lower, block_upper, cap, sum_l, base, num_blocks, upper_rest)
+
+
+def _two_layer_sorted(w, ranking, blocks, block_lower, block_upper, cap, sum_l, base, num_blocks, upper_rest):
+    """The block greedy, from each met block's capacities ``cap (..., T, S)`` in the block's rank
+    order and its lower bounds' sum and cost ``sum_l, base (..., T)``."""
+    n_states = w.shape[0]
+    size = cap.shape[-1]
+    w_sorted, sorted_rank, sorted_w = ranking["w_sorted"], ranking["sorted_rank"], ranking["sorted_w"]
+    sorted_min_rank, block_prefix = ranking["sorted_min_rank"], ranking["block_prefix"]
+    blocks = blocks.astype(jnp.int32)
+    met = blocks < num_blocks
+    block_row = jnp.minimum(blocks, num_blocks)  # padding -> the all-padding block
     w_i = sorted_w[block_row]
     cum_cap = _prefix_sums(cap)
     cum_cost = _prefix_sums(cap * w_i)
@@ -282,3 +448,4 @@ def _prefix_sums(x):
     if size > _MATMUL_PREFIX_MAX:
         return jnp.cumsum(x, -1)
     return jnp.matmul(x, jnp.triu(jnp.ones((size, size), x.dtype)), precision=jax.lax.Precision.HIGHEST)
+

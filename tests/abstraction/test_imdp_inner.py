@@ -8,6 +8,7 @@ from scipy.optimize import linprog
 
 from smdpjax.abstraction import imdp as imdp_module
 from smdpjax.abstraction import interval_min
+import smdpjax as sj
 
 
 def random_instance(rng, n_states, k, rest):
@@ -66,3 +67,104 @@ def test_interval_min_batched_rows_are_independent():
                                   jnp.asarray(upper), rest))
     expect = [lp_min(s, l, u, rest, values) for s, l, u in zip(succ, lower, upper)]
     np.testing.assert_allclose(got, expect, atol=1e-9)
+
+
+def random_padded_imdp(rng, n_states, rows, actions, rest, max_k=12, pad=3):
+    """A padded IMDP with lists of varying width (so that rows need different numbers of chunks) and up
+    to three positive lower bounds per list, listed entries in increasing order."""
+    from smdpjax.partition import NONTERMINAL
+
+    k = max_k + pad
+    succ = np.full((rows, actions, k), n_states, np.int64)
+    lower, upper = np.zeros((rows, actions, k)), np.zeros((rows, actions, k))
+    for r in range(rows):
+        width = rng.integers(2, max_k + 1) if r % 3 else max_k  # row widths differ; each row has its own
+        for a in range(actions):
+            s, lo, up, _ = random_instance(rng, n_states, int(rng.integers(1, width + 1)), rest)
+            keep = np.argsort(s)
+            lo = lo[keep] * (rng.uniform(size=s.size) < 0.4)  # sparse lower bounds
+            succ[r, a, :s.size], lower[r, a, :s.size], upper[r, a, :s.size] = s[keep], lo, up[keep]
+    labels = np.full(n_states, NONTERMINAL, np.int8)
+    return sj.IMDP(successors=jnp.asarray(succ, jnp.int16), lower=jnp.asarray(lower), upper=jnp.asarray(upper),
+                   upper_rest=jnp.asarray(rest), rows=jnp.arange(rows, dtype=jnp.int32), labels=jnp.asarray(labels))
+
+
+@pytest.mark.parametrize("rest, explicit_columns, chunk", [
+    (0.0, 48, None), (1e-3, 48, 1), (0.02, 48, 4), (0.0, 48, 20), (0.02, 0, None), (1e-3, 0, 4)])
+def test_compact_imdp_equals_padded_and_lp(rest, explicit_columns, chunk, monkeypatch):
+    """Chunked lists and sparse lower bounds solve the padded IMDP's inner problem: against the
+    LP and against ``interval_min`` on the padded lists, every action, a fixed strategy, ``restrict``."""
+    from smdpjax.abstraction import imdp_compact
+
+    monkeypatch.setattr(imdp_compact, "_EXPLICIT_COLUMNS", explicit_columns)
+    rng = np.random.default_rng(int(rest * 1e4) + 5)
+    n_states, rows, actions = 40, 30, 3
+    padded = random_padded_imdp(rng, n_states, rows, actions, rest)
+    compact = imdp_compact.CompactIMDP.from_imdp(padded, chunk=chunk)
+    assert compact.num_lower >= 2 and compact.chunk == (chunk or compact.chunk)
+    if chunk is not None and chunk < compact.width:
+        assert compact.num_chunks > rows  # rows split over several chunks
+    if chunk is None or chunk < compact.width:
+        assert compact.nbytes < padded.nbytes
+    for name in ("successors", "lower", "upper"):  # the padded views give the lists back (widest list's width)
+        np.testing.assert_array_equal(np.asarray(getattr(compact, name)),
+                                      np.asarray(getattr(padded, name))[..., :compact.width])
+    strategy = jnp.asarray(rng.integers(0, actions, rows), jnp.int32)
+    # a sum over the last axis may add in another order for one action than for all (1 ulp)
+    same = np.testing.assert_array_equal if explicit_columns else \
+        (lambda a, b: np.testing.assert_allclose(a, b, rtol=0, atol=4e-16))
+    # jitted once per test (the monkeypatched column rule is read when tracing)
+    q = jax.jit(lambda a, v, adversary, s: a.q_values(v, adversary, s), static_argnums=2)
+    succ, lo, up = (np.asarray(x) for x in (padded.successors, padded.lower, padded.upper))
+    for trial in range(4):
+        values = rng.uniform(0, 1, n_states) if trial % 2 else rng.choice([0.0, 0.25, 0.5, 1.0], n_states)
+        v = jnp.asarray(values)
+        for adversary in ("min", "max"):
+            got = np.asarray(q(compact, v, adversary, None))
+            np.testing.assert_allclose(got, np.asarray(q(padded, v, adversary, None)), rtol=0, atol=1e-15)
+            fixed = np.asarray(q(compact, v, adversary, strategy))
+            same(fixed, got[np.arange(rows), np.asarray(strategy)])
+            np.testing.assert_array_equal(np.asarray(q(compact.restrict(strategy), v, adversary, None))[:, 0], fixed)
+            if adversary == "min":
+                for r in range(0, rows, 4):
+                    for a in range(actions):
+                        keep = succ[r, a] < n_states
+                        expect = lp_min(succ[r, a][keep], lo[r, a][keep], up[r, a][keep], rest, values)
+                        assert got[r, a] == pytest.approx(expect, abs=1e-9)
+
+
+def test_chunk_width_minimizes_slots_plus_overhead():
+    from smdpjax.abstraction.imdp_compact import chunk_layout, chunk_width
+
+    assert chunk_width(np.full(50, 7)) == 7  # equal widths: one chunk per row, no padding
+    wide = np.r_[np.full(5000, 10), np.full(5000, 1000)]
+    w = chunk_width(wide, overhead=8)
+    cost = lambda c: int(np.sum(-(-wide // c) * (c + 8)))
+    assert all(cost(w) <= cost(c) for c in (4, 8, 12, 16, 24, 32, 48, 64, 128, 256, 512, 1000))
+    # by hand: W = 64 costs 5000 * 72 + 5000 * 16 * 72 = 6.12e6 slots, 48 costs 6.16e6, 96 6.24e6,
+    # one chunk of 1000 per row 10.08e6
+    assert w == 64 and cost(w) == 6_120_000
+    rng = np.random.default_rng(3)
+    widths = rng.integers(1, 300, 1000)
+    row, within, width, most = chunk_layout(widths, 16)
+    assert width == 16 and most == 19 and np.all(np.diff(row) >= 0)
+    np.testing.assert_array_equal(np.bincount(row, minlength=1000), -(-widths // 16))
+    np.testing.assert_array_equal(within, np.concatenate([np.arange(c) for c in -(-widths // 16)]))
+    with pytest.raises(ValueError, match="at least 1"):
+        chunk_layout(widths, 0)
+
+
+def test_abstract_imdp_is_compact_and_synthesizes_as_padded():
+    system = sj.System(lambda x, u, w: x + 0.1 * (jnp.array([jnp.cos(u[0]), jnp.sin(u[0])]) + w),
+                       actions=(np.arange(4) * np.pi / 2)[:, None], noise=sj.Gaussian([0, 0], [0.5, 0.5]))
+    grid = sj.StateGrid([0, 0], [1, 1], 12, reach=[([0.75, 0.75], [1, 1])], avoid=[([0.4, 0.2], [0.6, 0.6])])
+    noise = sj.NoiseGrid.ball([0, 0], 2.0, 6)
+    compact = sj.abstract(system, grid, noise, "imdp")
+    assert isinstance(compact, sj.CompactIMDP)
+    padded = compact.padded()
+    assert compact.nbytes < padded.nbytes
+    for horizon in (None, 7):
+        a, b = sj.synthesize(compact, horizon=horizon), sj.synthesize(padded, horizon=horizon)
+        np.testing.assert_allclose(np.asarray(a.lower), np.asarray(b.lower), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(a.upper), np.asarray(b.upper), rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(np.asarray(a.policy), np.asarray(b.policy))

@@ -140,3 +140,32 @@ def test_solver_same_with_either_prefix_sum(monkeypatch):
     monkeypatch.setattr(twolayer, "_MATMUL_PREFIX_MAX", 0)
     by_cumsum = np.asarray(tl.q_values(v, "min"))
     np.testing.assert_allclose(by_cumsum, by_matmul, rtol=0, atol=1e-15)
+
+
+@pytest.mark.parametrize("chunk", [None, 3])
+@pytest.mark.parametrize("name, block", [("gaussian", (2, 2)), ("uniform", (3, 2))])
+def test_sparse_fine_layer_equals_dense_solver(name, block, chunk):
+    """The chunked, sparse fine layer gives the dense solver's values (``two_layer_min`` on the
+    dense ``(R, A, T, S)`` views), for every action, a fixed strategy and ``restrict``, and
+    stores fewer bytes than those views."""
+    from smdpjax.abstraction import twolayer
+
+    system, grid, noise = PROBLEMS[name]
+    tl = TwoLayerIMDP.from_clusters(grid, compute_grid_clusters(system, grid, noise), block=block, chunk=chunk)
+    if chunk is not None:
+        assert tl.chunk == chunk and tl.num_chunks > tl.num_rows
+    dense = (tl.blocks, tl.block_lower, tl.block_upper, tl.lower, tl.upper)
+    assert tl.nbytes < sum(np.asarray(a).nbytes for a in dense)
+    rng = np.random.default_rng(5)
+    strategy = jnp.asarray(rng.integers(0, tl.num_actions, tl.num_rows), jnp.int32)
+    q = jax.jit(lambda a, v, adversary, s: a.q_values(v, adversary, s), static_argnums=2)
+    dense_min = jax.jit(lambda w: twolayer.two_layer_min(w, *dense, tl.cells_of, tl.upper_rest))
+    for _ in range(3):
+        v = jnp.asarray(rng.uniform(0, 1, grid.num_states)).at[-1].set(0.0)
+        for adversary, sign in (("min", 1.0), ("max", -1.0)):
+            expect = sign * np.asarray(dense_min(sign * v))
+            got = np.asarray(q(tl, v, adversary, None))
+            np.testing.assert_allclose(got, expect, rtol=0, atol=1e-15)
+            fixed = np.asarray(q(tl, v, adversary, strategy))
+            np.testing.assert_array_equal(fixed, got[np.arange(tl.num_rows), np.asarray(strategy)])
+            np.testing.assert_array_equal(np.asarray(q(tl.restrict(strategy), v, adversary, None))[:, 0], fixed)
