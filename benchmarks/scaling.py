@@ -79,10 +79,12 @@ def estimate_bytes(n: int, boxes: float, cells: int) -> float:
     """Estimated peak bytes of a child: the base process, the stored boxes twice (the chunks and
     their concatenation: ``2 n`` ints of 1 or 2 bytes and a sink flag each) and what synthesis
     adds per box, about ``18 n + 12`` bytes (measured: 4-D, 25 actions, 20^4 cells: 31 bytes per
-    box after ``abstract``, 100 after ``synthesize``; the index arithmetic of the range minima,
-    which depends on the boxes only, is materialized outside the value-iteration loop)."""
+    box after ``abstract``, 100 after ``synthesize``), at most a few backup blocks of
+    ``smdp.BACKUP_BLOCK_BYTES`` (a backup takes the rows in blocks)."""
+    from smdpjax.abstraction.smdp import BACKUP_BLOCK_BYTES
+
     stored = 2 * n * (1 if cells <= 127 else 2) + 1
-    return boxes * (2 * stored + 18 * n + 12) + BASE_BYTES
+    return boxes * 2 * stored + min(boxes * (18 * n + 12), 4 * BACKUP_BLOCK_BYTES) + BASE_BYTES
 
 
 def unavailable(exc: Exception) -> bool:

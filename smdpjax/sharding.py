@@ -145,6 +145,8 @@ def shard_abstraction(abstraction, mesh: Mesh | None = None):
         return jax.device_put(leaf, copy)
 
     sharded = jax.tree_util.tree_map_with_path(place, abstraction)
+    if getattr(sharded, "backup_rows", 0) != 0:  # an SMDP: each device backs up its own rows at once
+        sharded = dataclasses.replace(sharded, backup_rows=0)
     return _distinct_lps(sharded)
 
 

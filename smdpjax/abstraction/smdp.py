@@ -37,6 +37,11 @@ from .imdp import row_chunks
 from .range_min import RangeSpec, build_table, loop_variant_zero, query_table
 
 ENCODINGS = ("auto", "boxes", "members", "structured")
+# A backup takes the rows in blocks whose cluster extremes and their temporaries (the (rows, A,
+# C_b) float64 extremes, the range-minimum lookups' indices: ~32 bytes per cluster, measured on
+# the 4-D double integrator, docs/performance.md) stay within this many bytes.
+BACKUP_BLOCK_BYTES = 1 << 28
+BYTES_PER_CLUSTER = 32
 
 
 @pytree_dataclass
@@ -151,6 +156,23 @@ def _compact(start, length, sink, dtype):  # one dispatch: the build of small SM
     return start.astype(dtype), length.astype(dtype), sink.astype(bool), _longest(length)
 
 
+def by_row_blocks(fn, tree, rows: int):
+    """``fn`` over blocks of ``rows`` rows of ``tree`` (every leaf with leading axis ``R``),
+    results concatenated along the rows: a ``lax.map`` over the full blocks and one call on the
+    rest, so only one block's temporaries are live at a time."""
+    total = jax.tree_util.tree_leaves(tree)[0].shape[0]
+    steps, rest = divmod(total, rows)
+    if steps <= 1 and rest == 0:
+        return fn(tree)
+    take = lambda start, size: jax.tree_util.tree_map(
+        lambda a: jax.lax.dynamic_slice_in_dim(a, start, size, 0), tree)
+    out = jax.lax.map(lambda i: fn(take(i * rows, rows)), jnp.arange(steps))
+    out = out.reshape((steps * rows,) + out.shape[2:])
+    if rest:
+        out = jnp.concatenate([out, fn(jax.tree_util.tree_map(lambda a: a[steps * rows:], tree))])
+    return out
+
+
 @pytree_dataclass
 class SMDP(AbstractionMixin):
     """Attributes:
@@ -161,6 +183,9 @@ class SMDP(AbstractionMixin):
         prob_rest: scalar P_W of the remainder cell, whose cluster is every state.
         rows: ``(R,)`` int32 state index of each row (the non-terminal cells).
         labels: ``(N + 1,)`` int8 state labels (``partition.NONTERMINAL/REACH/AVOID``).
+        backup_rows: rows per block of a backup (``lax.map`` over the blocks bounds its
+            temporaries); ``None``: as many as ``BACKUP_BLOCK_BYTES`` allows, ``0``: all at once
+            (what ``shard_abstraction`` sets: a sharded backup splits the rows over devices).
     """
 
     clusters: "BoxClusters | MemberClusters | StructuredClusters"
@@ -169,6 +194,7 @@ class SMDP(AbstractionMixin):
     rows: jax.Array
     labels: jax.Array
     kind: str = static_field(default="smdp")
+    backup_rows: int | None = static_field(default=None)
 
     @classmethod
     def from_clusters(cls, grid, clusters: GridClusters, encoding: str = "auto") -> "SMDP":
@@ -244,20 +270,34 @@ class SMDP(AbstractionMixin):
         """The single-action SMDP of a stationary strategy ``actions: (R,)``."""
         return dataclasses.replace(self, clusters=self.clusters.take_actions(actions))
 
+    def block_rows(self) -> int:
+        """Rows per block of a backup (``backup_rows``, resolved; ``R`` for one block)."""
+        r, a, c = self.clusters.shape
+        if self.backup_rows == 0:
+            return max(r, 1)
+        if self.backup_rows is not None:
+            return max(1, min(int(self.backup_rows), r))
+        return max(1, min(r, BACKUP_BLOCK_BYTES // max(1, a * c * BYTES_PER_CLUSTER)))
+
     def q_values(self, v, adversary: str = "min", actions=None):
         minimize = check_adversary(adversary)
         clusters = self.clusters
         if actions is not None:
             clusters = clusters.take_actions(actions)
-        worst = clusters.extreme(v, minimize)  # (R, A, C_b)
-        if actions is not None:
-            worst = worst[:, 0]
-        # Both encodings give the same cluster extremes; the barrier makes XLA sum them with the
-        # same kernel too (on GPU it would otherwise fuse the sum into either encoding's gathers,
-        # in a different order: values 1 ulp apart). Free on CPU, where nothing fuses across it.
-        worst = jax.lax.optimization_barrier(worst)
+
+        def expected_worst(part):  # (rows, A) sum_c P_W(c) min over the cluster, for a block of rows
+            worst = part.extreme(v, minimize)  # (rows, A, C_b)
+            if actions is not None:
+                worst = worst[:, 0]
+            # Both encodings give the same cluster extremes; the barrier makes XLA sum them with
+            # the same kernel too (on GPU it would otherwise fuse the sum into either encoding's
+            # gathers, in a different order: values 1 ulp apart). Free on CPU, where nothing
+            # fuses across it.
+            return jax.lax.optimization_barrier(worst) @ self.prob
+
+        value = by_row_blocks(expected_worst, clusters, self.block_rows())
         everywhere = v.min() if minimize else v.max()
-        return worst @ self.prob + self.prob_rest * everywhere
+        return value + self.prob_rest * everywhere
 
     def __repr__(self):
         r, a, c = self.clusters.shape
