@@ -9,7 +9,11 @@
   and memory against |S| (2-D rows), |C| (3-D rows) and n (temperature rows); ours solid, the
   paper's dashed, log scale for times and memory (paper Figs. 3, 4, 6).
 
-Missing rows are skipped; a figure with nothing to show is not written.
+Missing rows are skipped; a figure with nothing to show is not written. ``--table`` draws Figs.
+3, 4, 6 from a rendered table instead (``docs/results/table1_cpu.md``: rows re-run at different
+times, whose result files need not all be on this machine); the heat maps need result files.
+
+    python -m benchmarks.table1_figures --table docs/results/table1_cpu.md --out docs/results/figures
 """
 
 from __future__ import annotations
@@ -142,6 +146,25 @@ def metric_plots(results: dict, system: str, xkey: str, xlabel: str, out: Path):
     return out
 
 
+def results_from_table(path: Path) -> dict[int, dict]:
+    """The metrics of Figs. 3, 4, 6 per row from a table ``benchmarks.table1`` rendered (markdown:
+    ``| # | system | n | class | |S| | |A| | |C| | e_avg (paper) | T_abs s (paper) | speed-up |
+    T_syn s (paper) | speed-up | memory MB (paper) | ...``); a ``*`` (single cold run) is dropped."""
+    first = lambda cell: float(cell.split()[0].rstrip("*"))
+    results = {}
+    for line in Path(path).read_text().splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) < 13 or not cells[0].isdigit():
+            continue
+        try:
+            results[int(cells[0])] = dict(status="ok", n=int(cells[2]), states=int(cells[4]),
+                                          noise_cells=int(cells[6]), e_avg=first(cells[7]), t_abs_s=first(cells[8]),
+                                          t_syn_s=first(cells[10]), memory_bytes=first(cells[12]) * 1e6)
+        except ValueError:  # a row that did not finish (no numbers)
+            continue
+    return results
+
+
 def _paper_x(row: int, xkey: str):
     """The paper's value of the varied size for a row (what our full-scale rows use too)."""
     spec = row_spec(row)
@@ -160,14 +183,18 @@ def main(argv=None):
     parser.add_argument("--results", type=Path, default=Path("results/table1"))
     parser.add_argument("--out", type=Path, default=Path("results/figures"))
     parser.add_argument("--heading", type=float, default=np.pi / 4, help="heading slice of the 3-D heat maps")
+    parser.add_argument("--table", type=Path, help="draw Figs. 3, 4, 6 from this rendered table (no heat maps)")
     args = parser.parse_args(argv)
-    results = load_results(args.results)
+    results = results_from_table(args.table) if args.table else load_results(args.results)
     if not results:
-        parser.error(f"no row_*.json in {args.results}: run python -m benchmarks.table1 first")
+        parser.error(f"no rows in {args.table}" if args.table else
+                     f"no row_*.json in {args.results}: run python -m benchmarks.table1 first")
     args.out.mkdir(parents=True, exist_ok=True)
-    written = [
+    written = [] if args.table else [
         heat_maps(args.results, results, "unicycle_2d", args.out / "fig2_unicycle_2d.png"),
         heat_maps(args.results, results, "unicycle_3d", args.out / "fig5_unicycle_3d.png", args.heading),
+    ]
+    written += [
         metric_plots(results, "unicycle_2d", "states", "|S|", args.out / "fig3_vs_states.png"),
         metric_plots(results, "unicycle_3d", "noise_cells", "|C|", args.out / "fig4_vs_noise_cells.png"),
         metric_plots(results, "temperature", "n", "n (rooms)", args.out / "fig6_vs_rooms.png"),
