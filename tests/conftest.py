@@ -9,8 +9,7 @@ os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 # notebooks, Table 1 rows and multi-device runs it starts as subprocesses (they inherit the
 # environment and run while the worker waits), which compile many of the same programs. Not one
 # cache for both workers: without a size limit JAX writes an entry in place (no lock, no rename),
-# so a worker could read the other's half-written executable and crash (we saw worker segfaults
-# whenever a change brought programs that both workers compiled at once). Keyed by program, jax
+# so a worker could read the other's half-written executable and crash. Keyed by program, jax
 # version and devices, so a stale entry is never used; compiled programs only, it changes no result.
 # The worker's id is known only once pytest configures it (``pytest_configure`` below).
 # (A directory set by this file in the xdist controller reaches the workers too: not the user's.)
