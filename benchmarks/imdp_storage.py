@@ -21,7 +21,7 @@ import numpy as np
 
 import smdpjax as sj
 from smdpjax.abstraction import IMDP, CompactIMDP, compute_grid_clusters
-from smdpjax.abstraction.imdp_compact import value_ranking
+from smdpjax.abstraction.imdp import value_ranking
 
 from .common import argument_parser, median, timed, write_result
 from .paper_table1 import row_spec

@@ -134,6 +134,16 @@ class IMDP(AbstractionMixin):
                 f"memory={self.nbytes / 1e6:.2f} MB)")
 
 
+def value_ranking(w):
+    """``(rank (N+1,), w_sorted (N+1,), prefix (N+2,))``: each state's rank in increasing ``w``
+    (stable), the sorted values and their prefix sums; one sort per backup, shared by all lists."""
+    n_states = w.shape[0]
+    order = jnp.argsort(w, stable=True)
+    rank = jnp.zeros(n_states, jnp.int32).at[order].set(jnp.arange(n_states, dtype=jnp.int32))
+    w_sorted = w[order]
+    return rank, w_sorted, jnp.concatenate([jnp.zeros(1, w.dtype), jnp.cumsum(w_sorted)])
+
+
 def interval_min(w, succ, lower, upper, upper_rest):
     """``min sum_s' gamma(s') w(s')`` over ``gamma`` in the interval polytope, for every row.
 
@@ -145,10 +155,7 @@ def interval_min(w, succ, lower, upper, upper_rest):
         ``(...)`` the minima.
     """
     n_states = w.shape[0]
-    order = jnp.argsort(w, stable=True)
-    rank = jnp.zeros(n_states, jnp.int32).at[order].set(jnp.arange(n_states, dtype=jnp.int32))
-    w_sorted = w[order]
-    prefix = jnp.concatenate([jnp.zeros(1, w.dtype), jnp.cumsum(w_sorted)])
+    rank, w_sorted, prefix = value_ranking(w)
 
     # Few successors (the sparse rows of bounded noise): successor-major (K, ...) columns,
     # combined by explicit elementwise sums, which XLA on the CPU fuses into one vectorized

@@ -45,7 +45,7 @@ import numpy as np
 from .._pytree import pytree_dataclass, static_field
 from .base import AbstractionMixin, check_adversary
 from .clusters import index_dtype
-from .imdp import first_rank_filling
+from .imdp import first_rank_filling, value_ranking
 
 # Explicit column sums up to this many slots per chunk (see ``imdp.interval_min``).
 _EXPLICIT_COLUMNS = 48
@@ -127,8 +127,8 @@ class CompactIMDP(AbstractionMixin):
             listed = successors < n_states
         widths = np.maximum(np.asarray(jnp.sum(listed, axis=-1).max(axis=1)), 1)  # (R,) widest list of each row
         num_lower = int(jnp.max(jnp.sum((lower > 0) & listed, axis=-1), initial=0))
-        c_succ, c_upper, chunk_row, l_succ, l_value = _chunks(successors.astype(index_dtype(n_states)), lower, upper,
-                                                              widths, chunk, num_lower, n_states)
+        c_succ, c_upper, chunk_row, l_succ, l_value = chunk_lists(successors.astype(index_dtype(n_states)), lower,
+                                                                  upper, listed, widths, chunk, num_lower, n_states)
         return cls(chunk_succ=c_succ, chunk_upper=c_upper, chunk_row=chunk_row, lower_succ=l_succ,
                    lower_value=l_value, upper_rest=jnp.asarray(upper_rest), rows=jnp.asarray(rows, jnp.int32),
                    labels=labels, width=int(widths.max()), list_rows=num_rows)
@@ -280,31 +280,24 @@ def lower_slots(positive, num_lower: int):
     return jnp.stack(slots, -1).astype(jnp.int32) if slots else jnp.zeros((r, a, 0), jnp.int32)
 
 
-def _chunks(succ, lower, upper, widths, chunk, num_lower: int, n_states: int):
-    """Chunk arrays ``(C, A, W)``, the chunks' rows ``(C,)`` and lower pairs ``(R, A, L)`` from
-    padded lists ``(R, A, K)`` (listed entries first)."""
+def chunk_lists(ids, lower, upper, listed, widths, chunk, num_lower: int, fill):
+    """Chunked storage of padded lists ``(R, A, K)`` (listed entries first): ``(chunk_ids (C, A,
+    W), chunk_upper (C, A, W), chunk_row (C,), lower_ids (R, A, L), lower_value (R, A, L))``.
+
+    ``ids`` is what an entry stores (a state, or the 2I-MDP's fine slot), ``fill`` its padding;
+    ``widths (R,)`` the widest list of each row; the lower bounds keep only their ``num_lower``
+    positive entries per list, as (id, value) pairs."""
     chunk_row, within, w, most = chunk_layout(widths, chunk)
     row_j, within_j = jnp.asarray(chunk_row), jnp.asarray(within)
-    listed = succ < n_states
-    c_succ = to_chunks(jnp.where(listed, succ, n_states).astype(succ.dtype), row_j, within_j, w, most, n_states)
+    c_ids = to_chunks(jnp.where(listed, ids, fill).astype(ids.dtype), row_j, within_j, w, most, fill)
     c_upper = to_chunks(jnp.where(listed, upper, 0.0), row_j, within_j, w, most, 0.0)
     slot = lower_slots((lower > 0) & listed, num_lower)
-    k = succ.shape[-1]
+    k = ids.shape[-1]
     has = slot < k
     safe = jnp.minimum(slot, k - 1)
-    l_succ = jnp.where(has, jnp.take_along_axis(succ, safe, axis=-1), n_states).astype(succ.dtype)
+    l_ids = jnp.where(has, jnp.take_along_axis(ids, safe, axis=-1), fill).astype(ids.dtype)
     l_value = jnp.where(has, jnp.take_along_axis(lower, safe, axis=-1), 0.0)
-    return c_succ, c_upper, row_j, l_succ, l_value
-
-
-def value_ranking(w):
-    """``(rank (N+1,), w_sorted (N+1,), prefix (N+2,))``: each state's rank in increasing ``w``
-    (stable), the sorted values and their prefix sums; one sort per backup, shared by all lists."""
-    n_states = w.shape[0]
-    order = jnp.argsort(w, stable=True)
-    rank = jnp.zeros(n_states, jnp.int32).at[order].set(jnp.arange(n_states, dtype=jnp.int32))
-    w_sorted = w[order]
-    return rank, w_sorted, jnp.concatenate([jnp.zeros(1, w.dtype), jnp.cumsum(w_sorted)])
+    return c_ids, c_upper, row_j, l_ids, l_value
 
 
 def chunked_interval_min(w, ranking, succ, upper, chunk_row, lower_succ, lower_value, upper_rest):

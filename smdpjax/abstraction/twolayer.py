@@ -47,7 +47,8 @@ from .base import AbstractionMixin, check_adversary
 from .box_bounds import region_bounds
 from .clusters import index_dtype
 from .grid_clusters import GridClusters
-from .imdp_compact import chunk_layout, lower_slots, to_chunks
+from .imdp import value_ranking
+from .imdp_compact import chunk_lists
 
 
 
@@ -147,19 +148,12 @@ class TwoLayerIMDP(AbstractionMixin):
         slot = slot.astype(index_dtype(met_count * size + 1))
         listed = succ < sentinel
         widths = np.maximum(np.asarray(jnp.sum(listed, axis=-1).max(axis=1)), 1)
-        chunk_row, within, w, most = chunk_layout(widths, chunk)
-        row_j, within_j = jnp.asarray(chunk_row), jnp.asarray(within)
         num_lower = int(jnp.max(jnp.sum((lower > 0) & listed, axis=-1), initial=0))
-        l_at = lower_slots((lower > 0) & listed, num_lower)
-        k = succ.shape[-1]
-        has = l_at < k
-        l_slot = jnp.where(has, jnp.take_along_axis(slot, jnp.minimum(l_at, k - 1), axis=-1), met_count * size)
-        l_value = jnp.where(has, jnp.take_along_axis(lower, jnp.minimum(l_at, k - 1), axis=-1), 0.0)
+        c_slot, c_upper, row_j, l_slot, l_value = chunk_lists(slot, lower, upper, listed, widths, chunk, num_lower,
+                                                              met_count * size)
         return cls(blocks=blocks.astype(index_dtype(num_blocks + 2)), block_lower=block_lower,
                    block_upper=block_upper,
-                   chunk_slot=to_chunks(slot, row_j, within_j, w, most, met_count * size),
-                   chunk_upper=to_chunks(jnp.where(listed, upper, 0.0), row_j, within_j, w, most, 0.0),
-                   chunk_row=row_j, lower_slot=l_slot.astype(slot.dtype), lower_value=l_value,
+                   chunk_slot=c_slot, chunk_upper=c_upper, chunk_row=row_j, lower_slot=l_slot, lower_value=l_value,
                    cells_of=jnp.asarray(cells_of), upper_rest=rest, rows=jnp.asarray(clusters.rows, jnp.int32),
                    labels=jnp.asarray(grid.state_labels), block_shape=tuple(int(b) for b in block),
                    list_rows=int(widths.size))
@@ -279,9 +273,7 @@ def block_ranking(w, cells_of):
     block's cells in increasing rank (padding last; one extra all-padding block) and where each
     cell slot lands in that order (``inverse``)."""
     n_states = w.shape[0]
-    order = jnp.argsort(w, stable=True)
-    rank = jnp.zeros(n_states, jnp.int32).at[order].set(jnp.arange(n_states, dtype=jnp.int32))
-    w_sorted = w[order]
+    rank, w_sorted, _ = value_ranking(w)
     num_blocks, size = cells_of.shape
     padded_cells = jnp.concatenate([cells_of, jnp.full((1, size), n_states, cells_of.dtype)])
     cell_rank = rank.at[padded_cells].get(mode="fill", fill_value=n_states)  # (B+2, S)
