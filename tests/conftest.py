@@ -1,3 +1,4 @@
+import gc
 import os
 
 # Test workers share the machine (pytest-xdist): on a GPU, do not let each one reserve most of
@@ -9,10 +10,39 @@ import pytest  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
-# No persistent compilation cache: with one, a test worker aborted inside
-# ``executable.serialize()`` while JAX wrote a CPU executable to the cache (jax 0.10.2, core
-# dump of 2026-11-26 16:15, test_structured.py), and CI died the same way. Only the in-process
-# cache is used; a user's JAX_COMPILATION_CACHE_DIR is still honoured by JAX itself.
+# Every compiled CPU program holds ~18 memory mappings (its code and data) for as long as JAX
+# caches it, and Linux allows a process vm.max_map_count (65 530 by default) of them: a test
+# worker that had compiled some 3 600 programs crashed inside XLA (a segfault while compiling,
+# or an abort in ``executable.serialize()``), late in the suite, in whichever test compiled
+# next; CI died that way (and the xdist controller then waited forever). tests/abstraction/
+# test_mimdp.py alone passes 21 000 mappings. So after any test that leaves the process above
+# half the limit, JAX's caches are dropped, which unmaps the programs.
+def _mappings() -> int | None:
+    try:
+        with open("/proc/self/maps") as maps:
+            return sum(1 for _ in maps)
+    except OSError:  # not Linux
+        return None
+
+
+def _map_limit() -> int:
+    try:
+        with open("/proc/sys/vm/max_map_count") as limit:
+            return int(limit.read())
+    except (OSError, ValueError):
+        return 65530
+
+
+_MAP_BUDGET = _map_limit() // 2
+
+
+@pytest.fixture(autouse=True)
+def _release_compiled_programs():
+    yield
+    count = _mappings()
+    if count is not None and count > _MAP_BUDGET:
+        jax.clear_caches()
+        gc.collect()
 
 
 # Hypothesis profile for a 2-core CI machine: no deadlines (JIT compiles on first call).
