@@ -13,12 +13,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import resource
 import subprocess
 import sys
 import time
 
-from .common import argument_parser, write_result
+from .common import argument_parser, rss_bytes, write_result
 from .paper_table1 import KIND_NAMES, PAPER, parse_rows, row_spec
 
 IMDP_ROWS = ",".join(str(r) for r in range(1, 41) if (r - 1) % 4 in (0, 1))
@@ -40,7 +39,7 @@ def measure(row: int) -> dict:
     return {"row": row, "class": KIND_NAMES[spec.kind], "memory_mb": abstraction.nbytes / 1e6,
             "paper_mb": PAPER[row].memory_gb * 1e3, "ratio": abstraction.nbytes / 1e6 / (PAPER[row].memory_gb * 1e3),
             "lp_data_mb": None if lps is None else lps.data_nbytes / 1e6, "t_abs_s": t_abs,
-            "peak_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
+            "peak_rss_gib": rss_bytes() / 2**30,
             "abstraction": repr(abstraction)}
 
 

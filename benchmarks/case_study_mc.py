@@ -16,7 +16,6 @@ initial cells and the non-terminal cells, and the Monte Carlo counts.
 
 from __future__ import annotations
 
-import resource
 import time
 
 import jax
@@ -25,7 +24,7 @@ import numpy as np
 import smdpjax as sj
 from smdpjax import case_studies
 
-from .common import argument_parser, binomial_tolerance, write_result
+from .common import argument_parser, binomial_tolerance, monte_carlo, rss_bytes, write_result
 
 
 def parse_study(text: str):
@@ -51,10 +50,6 @@ def parse_study(text: str):
     return constructor(**options)
 
 
-def peak_rss_gib() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
-
-
 def run(study, kind: str, initial: int, trajectories: int, tol: float) -> dict:
     start = time.perf_counter()
     abstraction = jax.block_until_ready(study.abstract(kind))
@@ -65,21 +60,18 @@ def run(study, kind: str, initial: int, trajectories: int, tol: float) -> dict:
     lower, upper = np.asarray(solution.lower), np.asarray(solution.upper)
     grid = study.state_grid
     cells = sj.metrics.initial_cells(grid, min(initial, grid.nonterminal.size), seed=0)
-    controller = sj.Controller(grid, study.closed_loop_policy(solution))
-    x0 = sj.uniform_in_cells(grid, cells, trajectories, jax.random.PRNGKey(7))
-    sim = sj.simulate(study.system, controller, x0, jax.random.PRNGKey(8), max_steps=study.max_steps,
-                      objective=study.objective)
-    sat = np.asarray(sim.satisfied).reshape(len(cells), trajectories).mean(axis=1)
+    sat, undecided = monte_carlo(study.system, grid, study.closed_loop_policy(solution), cells, trajectories,
+                                 seed=7, max_steps=study.max_steps, objective=study.objective)
     band = binomial_tolerance(sat, trajectories)
     inside = (sat >= lower[cells] - band) & (sat <= upper[cells] + band)
     nt = grid.nonterminal
     return {"study": repr(study), "kind": kind, "abstraction": repr(abstraction), "t_abs_s": t_abs,
-            "t_syn_s": t_syn, "stored_mb": abstraction.nbytes / 1e6, "peak_rss_gib": peak_rss_gib(),
+            "t_syn_s": t_syn, "stored_mb": abstraction.nbytes / 1e6, "peak_rss_gib": rss_bytes() / 2**30,
             "p_low_initial": float(lower[cells].mean()), "p_up_initial": float(upper[cells].mean()),
             "p_mc_initial": float(sat.mean()), "p_low_nonterminal": float(lower[nt].mean()),
             "p_low_min": float(lower[nt].min()), "p_low_max": float(lower[nt].max()),
             "p_up_nonterminal": float(upper[nt].mean()), "mc_cells_in_bounds": int(inside.sum()),
-            "mc_cells": int(inside.size), "trajectories": trajectories, "mc_undecided": int(sim.undecided),
+            "mc_cells": int(inside.size), "trajectories": trajectories, "mc_undecided": int(undecided),
             "worst_excess": float(np.max(np.maximum(lower[cells] - sat, sat - upper[cells])))}
 
 

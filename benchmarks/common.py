@@ -44,14 +44,23 @@ def median(xs):
     return float(statistics.median(xs))
 
 
-def monte_carlo(system, grid, solution, cells, per_cell: int, seed: int, max_steps: int,
+def monte_carlo(system, grid, policy, cells, per_cell: int, seed: int, max_steps: int,
                 objective: str = "reach_avoid"):
-    """Empirical satisfaction per initial cell ``(len(cells),)`` under the solution's controller."""
-    controller = sj.Controller(grid, solution.policy)
+    """``(satisfied, undecided)``: the empirical satisfaction per initial cell ``(len(cells),)`` of
+    ``per_cell`` runs from uniform points in each, under the look-up table ``policy (N + 1,)``
+    (keys ``seed`` for the starts, ``seed + 1`` for the runs), and the runs left undecided."""
+    controller = sj.Controller(grid, policy)
     x0 = sj.uniform_in_cells(grid, cells, per_cell, jax.random.PRNGKey(seed))
     res = sj.simulate(system, controller, x0, jax.random.PRNGKey(seed + 1), max_steps=max_steps,
                       objective=objective)
     return np.asarray(res.satisfied).reshape(len(cells), per_cell).mean(axis=1), res.undecided
+
+
+def rss_bytes() -> int:
+    """Peak resident memory of this process (``ru_maxrss`` is in KiB on Linux)."""
+    import resource
+
+    return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024
 
 
 def binomial_tolerance(p, n, sigmas: float = 4.0):

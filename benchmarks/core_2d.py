@@ -61,7 +61,7 @@ def main(argv=None):
         solution, t_syn = timed(lambda: sj.synthesize(abstraction, tol=args.tol), args.repeats)
         solutions[kind] = solution
         p_low, p_up = sj.metrics.average_bounds(solution, cells)
-        sat, undecided = monte_carlo(system, grid, solution, cells, args.trajectories, seed=7, max_steps=1000)
+        sat, undecided = monte_carlo(system, grid, solution.policy, cells, args.trajectories, seed=7, max_steps=1000)
         p_mc = float(sat.mean())
         tol = float(binomial_tolerance(p_mc, args.trajectories * len(cells)))
         per_cell_ok = bool(np.all((sat >= np.asarray(solution.lower)[cells] - binomial_tolerance(sat, args.trajectories))

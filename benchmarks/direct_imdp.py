@@ -129,7 +129,7 @@ def run_class(name, kind, system, grid, noise, method, args, cells):
         row["bounds_listed"] = listed
         row["bounds_per_s"] = listed / row["t_abs_s"]
     if args.trajectories > 0:
-        sat, undecided = monte_carlo(system, grid, solution, cells, args.trajectories, seed=7, max_steps=1000)
+        sat, undecided = monte_carlo(system, grid, solution.policy, cells, args.trajectories, seed=7, max_steps=1000)
         p_mc = float(sat.mean())
         tol = float(binomial_tolerance(p_mc, args.trajectories * len(cells)))
         row.update(p_mc_avg=p_mc, mc_tolerance=tol, mc_in_bounds=bool(p_low - tol <= p_mc <= p_up + tol),

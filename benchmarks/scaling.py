@@ -46,7 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import argument_parser, median, write_result
+from .common import argument_parser, median, rss_bytes, write_result
 
 SYSTEMS = {"2d": ("unicycle_2d", 2, 12), "3d": ("unicycle_3d", 3, 6), "4d": ("double_integrator_4d", 4, 2)}
 LADDER = (1e4, 3e4, 1e5, 3e5, 6e5, 1e6)
@@ -95,13 +95,6 @@ def unavailable(exc: Exception) -> bool:
 
 
 # ----------------------------------------------------------------------------- child
-
-def rss_bytes() -> int:
-    """Peak resident memory of this process (``ru_maxrss`` is in KiB on Linux)."""
-    import resource
-
-    return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024
-
 
 def run_size(spec: dict, record_path: Path) -> dict:
     """Abstract, synthesize and time one backup of ``spec`` in this process; the record is

@@ -83,7 +83,7 @@ def run_row(row: int, args) -> dict:
     import smdpjax as sj
     from smdpjax.abstraction import build, compute_grid_clusters
 
-    from .common import binomial_tolerance, environment
+    from .common import binomial_tolerance, environment, monte_carlo
 
     spec = row_spec(row)
     study = case_study(spec, args.quick)
@@ -127,17 +127,14 @@ def run_row(row: int, args) -> dict:
          evaluation_iterations=solution.evaluation_iterations, converged=solution.converged,
          upper_change=solution.upper_change, gap=solution.gap)
 
-    controller = sj.Controller(study.state_grid, study.closed_loop_policy(solution))
-    x0 = sj.uniform_in_cells(study.state_grid, cells, args.trajectories, jax.random.PRNGKey(7))
-    sim = sj.simulate(study.system, controller, x0, jax.random.PRNGKey(8), max_steps=study.max_steps,
-                      objective=study.objective)
-    sat = np.asarray(sim.satisfied).reshape(len(cells), args.trajectories).mean(axis=1)
+    sat, undecided = monte_carlo(study.system, study.state_grid, study.closed_loop_policy(solution), cells,
+                                 args.trajectories, seed=7, max_steps=study.max_steps, objective=study.objective)
     p_mc = float(sat.mean())
     tol = float(binomial_tolerance(p_mc, sat.size * args.trajectories))
     cell_tol = binomial_tolerance(sat, args.trajectories)
     cell_ok = (sat >= lower[cells] - cell_tol) & (sat <= upper[cells] + cell_tol)
     save(STAGES[4], status="ok", p_mc_avg=p_mc, mc_tolerance=tol, mc_in_bounds=bool(p_low - tol <= p_mc <= p_up + tol),
-         mc_cells_in_bounds=int(cell_ok.sum()), mc_cells=int(cell_ok.size), mc_undecided=int(sim.undecided),
+         mc_cells_in_bounds=int(cell_ok.sum()), mc_cells=int(cell_ok.size), mc_undecided=int(undecided),
          initial_cells=int(len(cells)), trajectories=args.trajectories)
     _write(out / f"row_{row:02d}.json", result)
     (out / f"row_{row:02d}.partial.json").unlink()
