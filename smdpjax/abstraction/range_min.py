@@ -24,7 +24,8 @@ Short dimensions may instead hold a window of *every* length ``1 .. max_length_d
 (``RangeSpec.every_length``): then the box's own extent is one window and that dimension needs one
 lookup instead of two. Each such dimension halves the gathers per query (the cost of a backup) and
 multiplies the table by ``max_length_d / (floor(log2 max_length_d) + 1)``; by default dimensions
-switch while the table stays small enough to stay in cache (``default_every_length``).
+switch while the table stays small enough to stay in cache, and on large grids while the lookups
+saved outweigh the larger table's build (``default_every_length``).
 
 Everything is static in shape (``RangeSpec`` is hashable) and jit/vmap friendly; Python loops run
 only over dimensions, levels and corners, never over boxes.
@@ -51,6 +52,18 @@ _OPS = ("min", "max")
 # (6 MB) 0.17-0.19 s; 1 lookup, every length everywhere (17 MB) 0.22 s. Fewer lookups pay until
 # the table leaves the cache.
 TABLE_BUDGET = 1 << 20
+# Past the budget a dimension still switches while a query needs more than this many lookups and
+# the table stays within half the boxes queried per rebuild (its build, ~4 ns per entry, then
+# costs less than the lookups it saves). 4-D double integrator, boxes 3x3x3x3, greedy backup per
+# box (AMD EPYC, 2 cores, 32 MB L3): 32^4 cells (94.6M boxes) 16 lookups 10.8 ns, 8 lookups (25M
+# entries) 5.5 ns, 4 (38M) 4.7-5.1 ns, 2 (57M) 8.2-12.9 ns; 18^4 cells 16.0 / 5.8 / 5.5 / 6.5 ns.
+# 3-D unicycle at 46^3 (6x6x3 boxes): 8 lookups 4.5 ns, 4 lookups 5.6-5.8 ns. Past 8 lookups the
+# gain is small or negative.
+MANY_LOOKUPS = 8
+# In 3-D and up one lookup per query ran 2-4x slower than two, even with the table in cache (4-D
+# 10^4 cells 6.1 vs 1.5 ns per box, 13^4 7.0 vs 2.1; 3-D 22^3 4.6 vs 1.2; 2-D 100^2 2.8 vs 3.1):
+# the dimensions stop at two lookups there.
+FEWEST_LOOKUPS_3D = 2
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,9 +107,13 @@ class RangeSpec:
         object.__setattr__(self, "every_length", every)
 
     @classmethod
-    def for_grid(cls, grid, max_lengths, every_length=None) -> "RangeSpec":
-        """The spec of a ``StateGrid`` (its cells and periodic dimensions)."""
-        return cls(tuple(grid.cells.tolist()), tuple(grid.periodic.tolist()), tuple(max_lengths), every_length)
+    def for_grid(cls, grid, max_lengths, every_length=None, boxes: int | None = None) -> "RangeSpec":
+        """The spec of a ``StateGrid`` (its cells and periodic dimensions); ``every_length=None``:
+        ``default_every_length`` for ``boxes`` queries per table build."""
+        cells, periodic, lengths = tuple(grid.cells.tolist()), tuple(grid.periodic.tolist()), tuple(max_lengths)
+        if every_length is None:
+            every_length = default_every_length(cells, periodic, tuple(int(m) for m in lengths), boxes=boxes)
+        return cls(cells, periodic, lengths, every_length)
 
     @property
     def n(self) -> int:
@@ -138,18 +155,25 @@ def _extended(cells, periodic, max_lengths) -> tuple:
     return tuple(c + m - 1 if p else c for c, p, m in zip(cells, periodic, max_lengths))
 
 
-def default_every_length(cells, periodic, max_lengths, budget: int = TABLE_BUDGET) -> tuple:
+def default_every_length(cells, periodic, max_lengths, budget: int = TABLE_BUDGET, boxes: int | None = None) -> tuple:
     """Which dimensions get windows of every length: greedily, the dimensions that need two
     power-of-two windows, cheapest (shortest max length) first, while the table stays within
-    ``budget`` entries. Each switch halves the gathers per query."""
+    ``budget`` entries, or, with ``boxes`` (queries per table build) given, while a query needs
+    more than ``MANY_LOOKUPS`` lookups and the table stays within ``boxes // 2`` entries. Each
+    switch halves the lookups per query; in 3-D and up a query keeps at least two."""
     every = [False] * len(cells)
     size = lambda e: math.prod(_levels(max_lengths, e)) * math.prod(_extended(cells, periodic, max_lengths))
+    lookups = lambda e: math.prod(1 if x or m <= 2 else 2 for x, m in zip(e, max_lengths))
+    fewest = FEWEST_LOOKUPS_3D if len(cells) >= 3 else 1
     for d in sorted(range(len(cells)), key=lambda d: max_lengths[d]):
         if max_lengths[d] <= 2:
             continue  # one power-of-two window already
         trial = every.copy()
         trial[d] = True
-        if size(trial) <= budget:
+        if lookups(trial) < fewest:
+            break
+        many = boxes is not None and lookups(every) > MANY_LOOKUPS and size(trial) <= boxes // 2
+        if size(trial) <= budget or many:
             every = trial
     return tuple(every)
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 
 import jax
 import jax.numpy as jnp
@@ -109,7 +110,8 @@ class BoxClusters:
             start, length, sink, longest = boxes.start, boxes.length, boxes.sink, _longest(boxes.length)
         else:
             start, length, sink, longest = _compact(boxes.start, boxes.length, boxes.sink, dtype)
-        return cls(start=start, length=length, sink=sink, spec=RangeSpec.for_grid(grid, lengths_of(longest)))
+        spec = RangeSpec.for_grid(grid, lengths_of(longest), boxes=math.prod(sink.shape))
+        return cls(start=start, length=length, sink=sink, spec=spec)
 
     @property
     def shape(self) -> tuple:

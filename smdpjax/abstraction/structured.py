@@ -178,7 +178,7 @@ def structured_clusters(system: System, grid: StateGrid, noise_grid: NoiseGrid, 
                                          progress=progress, mesh=mesh)
     longest = np.asarray(_longest(length))
     clusters = StructuredClusters(start=start, length=length, leave=leave,
-                                  spec=RangeSpec.for_grid(grid, lengths_of(longest)),
+                                  spec=RangeSpec.for_grid(grid, lengths_of(longest), boxes=rows.size * per_row),
                                   noise_shape=tuple(int(k) for k in noise_grid.shape),
                                   axes=tuple(int(j) for j in axes))
     return rows, clusters, prob, prob_rest

@@ -1,6 +1,7 @@
 """Range minima/maxima over index boxes (sparse table) against brute force over the boxes' cells."""
 
 import itertools
+import math
 
 import jax
 import jax.numpy as jnp
@@ -109,6 +110,30 @@ def test_default_windows_stay_within_the_table_budget():
     assert small.every_length == (True, True) and small.corners == (1, 1)
     assert RangeSpec((9,), (False,), (2,)).every_length == (False,)  # one window already
 
+
+
+def test_large_grids_trade_table_size_for_fewer_lookups():
+    # 4-D double integrator at 32^4 cells: 16 lookups per box with power-of-two windows; with the
+    # boxes queried per build given, one dimension switches (8 lookups, 25.2M entries <= boxes / 2)
+    cells, periodic, lengths = (32,) * 4, (False,) * 4, (3,) * 4
+    assert default_every_length(cells, periodic, lengths) == (False,) * 4  # 16.8M entries > budget
+    spec = RangeSpec(cells, periodic, lengths, default_every_length(cells, periodic, lengths, boxes=94_617_600))
+    assert math.prod(spec.corners) == 8 and math.prod(spec.table_shape) == 3 * 2 * 2 * 2 * 32 ** 4
+    # fewer boxes: the table may not outgrow half of them
+    few = 2 * math.prod(spec.table_shape)
+    assert sum(default_every_length(cells, periodic, lengths, boxes=few)) == 1
+    assert sum(default_every_length(cells, periodic, lengths, boxes=few - 2)) == 0
+    # 3-D at 46^3 (6x6x3 boxes): 8 lookups is few enough, no switch past the budget
+    assert default_every_length((46,) * 3, (False, False, True), (6, 6, 3), boxes=10 ** 9) == (False,) * 3
+
+
+def test_three_or_more_dimensions_keep_two_lookups():
+    # 10^4 cells in 4-D: the whole every-length table would fit the budget, but one lookup per
+    # query ran slower than two; 2-D grids go down to one
+    spec = RangeSpec((10,) * 4, (False,) * 4, (3,) * 4)
+    assert math.prod(spec.corners) == 2 and math.prod(spec.table_shape) <= TABLE_BUDGET
+    assert math.prod(RangeSpec((22,) * 3, (False, False, True), (4, 5, 3)).corners) == 2
+    assert math.prod(RangeSpec((30, 30), (False, False), (6, 6)).corners) == 1
 
 def test_table_entries_are_window_minima():
     """Level k of a powers-of-two dimension is windows of 2^k cells, of an every-length one k + 1."""
