@@ -79,7 +79,7 @@ class MIMDP(AbstractionMixin):
     """Attributes (J = clusters per row after deduplication, L = largest cluster, K = listed successors):
         relaxation: the IMDP of the same reachable sets (Gamma^MI is inside its ambiguity sets).
             Its successor lists also hold every member of a user-given cluster.
-        cluster_slots: ``(R, A, J, L)`` int16/int32 cluster members as positions in
+        cluster_slots: ``(R, A, J, L)`` uint8/int16/int32 cluster members as positions in
             ``relaxation.successors[r, a]``, padded with ``K``; a padding cluster is all padding.
         cluster_lower, cluster_upper: ``(R, A, J)`` P_low, P_up of each cluster (0 and 1 on padding).
         lp_index: ``(R, A)`` int32 index of each row's LP in the host-side solver cache ``lps``.
@@ -184,8 +184,9 @@ class MIMDP(AbstractionMixin):
         # ids (1.1e9 on the 3-D unicycle at |C| = 65, more than 24 GB with the temporaries).
         k = succ.shape[-1]
         # narrowed per chunk: as int64 the padded pieces and their concatenation peaked at 12 GB
-        # on the 4-room temperature row (20 736 rows x 256 clusters x 81 members)
-        slot_type = np.int16 if k < np.iinfo(np.int16).max else np.int32
+        # on the 4-room temperature row (20 736 rows x 256 clusters x 81 members); the smallest
+        # type that holds the padding K (uint8 on the 2-D unicycle rows, K <= 225: half of int16)
+        slot_type = next(t for t in (np.uint8, np.int16, np.int32) if k <= np.iinfo(t).max)
         pieces = []
         for start in range(0, num_rows, _MEMBER_ROWS_PER_CHUNK):
             stop = min(start + _MEMBER_ROWS_PER_CHUNK, num_rows)
