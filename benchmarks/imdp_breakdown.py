@@ -36,7 +36,7 @@ from smdpjax.abstraction.imdp_compact import chunked_interval_min
 from smdpjax.abstraction.range_min import loop_variant_zero
 
 from .common import argument_parser, environment, median, timed, write_result
-from .storm_peer import case
+from .storm_peer import add_model_options, case, models
 
 STAGES = ("sort", "sums", "inner", "q_values", "backup", "synthesize")
 
@@ -108,16 +108,13 @@ def table(rows) -> str:
 
 def main(argv=None):
     parser = argument_parser(__doc__, "imdp_breakdown", repeats=5, repeats_help="timed runs per stage (median)")
-    parser.add_argument("--cells", default="20,30", help="comma-separated grid sizes per dimension")
-    parser.add_argument("--noise", default="gaussian,uniform", help="gaussian (dense rows) and/or uniform (bounded)")
-    parser.add_argument("--horizon", type=int, default=100, help="steps per timed loop")
+    add_model_options(parser, horizon_help="steps per timed loop")
     args = parser.parse_args(argv)
     rows = []
-    for cells in (int(c) for c in args.cells.split(",")):
-        for noise_kind in args.noise.split(","):
-            rows.append(run_case(cells, noise_kind, args.horizon, args.repeats))
-            print(f"{rows[-1]['case']}: " + ", ".join(f"{k} {v:.3f} ms" for k, v in rows[-1]["per_step_ms"].items()),
-                  flush=True)
+    for cells, noise_kind in models(args):
+        rows.append(run_case(cells, noise_kind, args.horizon, args.repeats))
+        print(f"{rows[-1]['case']}: " + ", ".join(f"{k} {v:.3f} ms" for k, v in rows[-1]["per_step_ms"].items()),
+              flush=True)
     print()
     print(table(rows))
     write_result("imdp_breakdown", args, environment=environment(), rows=rows)

@@ -47,6 +47,18 @@ def case(cells: int, noise_kind: str):
     return system, grid, noise
 
 
+def add_model_options(parser, horizon_help: str) -> None:
+    """``--cells``, ``--noise`` and ``--horizon``: the models (and steps) of this benchmark."""
+    parser.add_argument("--cells", default="20,30", help="comma-separated grid sizes per dimension")
+    parser.add_argument("--noise", default="gaussian,uniform", help="gaussian (dense rows) and/or uniform (bounded)")
+    parser.add_argument("--horizon", type=int, default=100, help=horizon_help)
+
+
+def models(args):
+    """``(cells, noise kind)`` of every model the options name, in order."""
+    return [(int(c), kind) for c in args.cells.split(",") for kind in args.noise.split(",")]
+
+
 def timed_once(fn):
     start = time.perf_counter()
     result = jax.block_until_ready(fn())
@@ -108,22 +120,19 @@ def table(rows) -> str:
 
 def main(argv=None):
     parser = argument_parser(__doc__, "storm_peer", repeats=3, repeats_help="timed runs of each tool (median reported)")
-    parser.add_argument("--cells", default="20,30", help="comma-separated grid sizes per dimension")
-    parser.add_argument("--noise", default="gaussian,uniform", help="gaussian (dense rows) and/or uniform (bounded)")
-    parser.add_argument("--horizon", type=int, default=100, help="K of the bounded until")
+    add_model_options(parser, horizon_help="K of the bounded until")
     args = parser.parse_args(argv)
     import stormpy
 
     rows = []
     with tempfile.TemporaryDirectory() as workdir:
-        for cells in (int(c) for c in args.cells.split(",")):
-            for noise_kind in args.noise.split(","):
-                row = run_case(cells, noise_kind, args.horizon, args.repeats, Path(workdir))
-                rows.append(row)
-                print(f"{row['case']}: {row['rows']} rows x {row['actions']} actions, {row['transitions']:,} "
-                      f"transitions ({row['listed_successors']:,} listed in our arrays), DRN {row['drn_mb']:.0f} MB "
-                      f"(export {row['t_export_s']:.1f} s), Storm build {row['t_storm_build_s']:.1f} s, "
-                      f"our compile+first run {row['t_ours_compile_s']:.1f} s", flush=True)
+        for cells, noise_kind in models(args):
+            row = run_case(cells, noise_kind, args.horizon, args.repeats, Path(workdir))
+            rows.append(row)
+            print(f"{row['case']}: {row['rows']} rows x {row['actions']} actions, {row['transitions']:,} "
+                  f"transitions ({row['listed_successors']:,} listed in our arrays), DRN {row['drn_mb']:.0f} MB "
+                  f"(export {row['t_export_s']:.1f} s), Storm build {row['t_storm_build_s']:.1f} s, "
+                  f"our compile+first run {row['t_ours_compile_s']:.1f} s", flush=True)
     print()
     print(table(rows))
     print("\nours: p_low (max over actions of the robust inner problem) and p_up under the strategy, per step; "
