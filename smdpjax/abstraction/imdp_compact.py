@@ -211,9 +211,8 @@ class CompactIMDP(AbstractionMixin):
     def lower(self):
         """``(R, A, width)`` padded lower bounds, as ``IMDP.lower`` (built on access)."""
         succ = self.successors[..., :, None]
-        rows = self.list_rows or self.num_rows
-        pairs = (self.lower_succ[:rows, :, None, :] == succ) & (self.lower_succ[:rows, :, None, :] < self.num_states)
-        return jnp.sum(jnp.where(pairs, self.lower_value[:rows, :, None, :], 0.0), axis=-1)
+        pairs = (self.lower_succ[:, :, None, :] == succ) & (self.lower_succ[:, :, None, :] < self.num_states)
+        return jnp.sum(jnp.where(pairs, self.lower_value[:, :, None, :], 0.0), axis=-1)
 
     def _padded(self, chunks, fill):
         rows = self.list_rows or self.num_rows
@@ -222,8 +221,10 @@ class CompactIMDP(AbstractionMixin):
         most = -(-self.width // self.chunk)
         out = jnp.full((rows, most) + chunks.shape[1:], fill, chunks.dtype)
         out = out.at[self.chunk_row, within].set(chunks)  # (R, chunks per row, A, W)
-        out = jnp.moveaxis(out, 1, 2).reshape(rows, chunks.shape[1], most * self.chunk)
-        return out[..., :self.width]
+        out = jnp.moveaxis(out, 1, 2).reshape(rows, chunks.shape[1], most * self.chunk)[..., :self.width]
+        if self.num_rows > rows:  # rows padded by sharding repeat the last row
+            out = out[jnp.minimum(jnp.arange(self.num_rows), rows - 1)]
+        return out
 
     def __repr__(self):
         return (f"IMDP(|S|={self.num_states}, rows={self.num_rows}, |A|={self.num_actions}, max successors="

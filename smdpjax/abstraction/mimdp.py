@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 import os
 
 import jax
@@ -60,6 +61,7 @@ from .base import AbstractionMixin, check_adversary
 from .clusters import IndexBoxes, cluster_members, max_lengths
 from .grid_clusters import GridClusters
 from .imdp import IMDP, interval_min, row_chunks
+from .imdp_compact import CompactIMDP
 from .lp import ClusterLPs
 from .smdp import SMDP
 
@@ -68,6 +70,8 @@ _BOUND_ROWS_PER_CHUNK = 64
 # ~270 MB of float64 and half that per int32 temporary
 _MEMBER_TERMS_PER_CHUNK = 1 << 25
 _MEMBER_ROWS_PER_CHUNK = 1024
+# Member positions encoded as runs at once (``ClusterRuns.from_slots``).
+_RUN_POSITIONS_PER_CHUNK = 1 << 22
 # Real-number bisection steps that narrow the threshold bracket of ``interval_min_rows``.
 _REAL_BISECTIONS = 20
 # Then steps from item to item (exact unless more listed costs than this share the bracket).
@@ -77,10 +81,13 @@ _WALK_STEPS = 4
 @pytree_dataclass
 class MIMDP(AbstractionMixin):
     """Attributes (J = clusters per row after deduplication, L = largest cluster, K = listed successors):
-        relaxation: the IMDP of the same reachable sets (Gamma^MI is inside its ambiguity sets).
-            Its successor lists also hold every member of a user-given cluster.
-        cluster_slots: ``(R, A, J, L)`` uint8/int16/int32 cluster members as positions in
-            ``relaxation.successors[r, a]``, padded with ``K``; a padding cluster is all padding.
+        relaxation: the IMDP of the same reachable sets (Gamma^MI is inside its ambiguity sets),
+            stored compactly (``CompactIMDP``); its padded ``(R, A, K)`` views, which the inner
+            problem reads, are built inside each backup. Its successor lists also hold every
+            member of a user-given cluster.
+        cluster_members: the members of each row's ``J`` clusters as runs of consecutive
+            positions in ``relaxation.successors[r, a]`` (``ClusterRuns``); ``cluster_slots``
+            expands them to ``(R, A, J, L')`` positions padded with ``K``.
         cluster_lower, cluster_upper: ``(R, A, J)`` P_low, P_up of each cluster (0 and 1 on padding).
         lp_index: ``(R, A)`` int32 index of each row's LP in the host-side solver cache ``lps``.
         rows: ``(R,)`` int32 state index of each row (the non-terminal cells).
@@ -96,8 +103,8 @@ class MIMDP(AbstractionMixin):
             every call). See ``freeze``.
     """
 
-    relaxation: IMDP
-    cluster_slots: jax.Array
+    relaxation: CompactIMDP
+    cluster_members: "ClusterRuns"
     cluster_lower: jax.Array
     cluster_upper: jax.Array
     lp_index: jax.Array
@@ -212,7 +219,11 @@ class MIMDP(AbstractionMixin):
                                          np.tile(np.arange(num_actions), num_rows)], axis=1))
         lp_index = np.arange(num_rows * num_actions, dtype=np.int32).reshape(num_rows, num_actions)
         screen = SMDP.from_clusters(grid, clusters) if screen_actions else None
-        return cls(relaxation=imdp, cluster_slots=jnp.asarray(slots), cluster_lower=jnp.asarray(clo),
+        # stored without padding to the widest list (lossless: the padded views, built in each
+        # backup, are these arrays again, so the cluster slots stay valid)
+        relaxation = CompactIMDP.from_lists(succ, lower, upper, imdp.upper_rest, imdp.rows, imdp.labels)
+        return cls(relaxation=relaxation, cluster_members=ClusterRuns.from_slots(slots, k),
+                   cluster_lower=jnp.asarray(clo),
                    cluster_upper=jnp.asarray(cup), lp_index=jnp.asarray(lp_index), rows=imdp.rows,
                    labels=imdp.labels, lps=lps, multiplier_cap=float(multiplier_cap), screen=screen,
                    freeze_multipliers=bool(freeze_multipliers))
@@ -224,20 +235,26 @@ class MIMDP(AbstractionMixin):
 
     @property
     def num_clusters(self) -> int:
-        return int(self.cluster_slots.shape[2])
+        return int(self.cluster_members.start.shape[2])
+
+    @property
+    def cluster_slots(self):
+        """``(R, A, J, L')`` int32 cluster members as positions in ``relaxation.successors[r, a]``,
+        padded with ``K`` (expanded from ``cluster_members``)."""
+        return self.cluster_members.slots()
 
     @property
     def summands_per_backup(self) -> float:
         # the interval part as in the IMDP, plus the cluster terms: lambda.lo, lambda.up and the
         # modified costs (one multiplier per member), each term up to multiplier_cap in size
-        _, _, j, size = self.cluster_slots.shape
+        j, size = self.num_clusters, self.cluster_members.size
         return self.relaxation.summands_per_backup + float(self.multiplier_cap * j * (size + 2) * 2)
 
     def restrict(self, actions) -> "MIMDP":
         """The single-action MI-MDP of a stationary strategy ``actions: (R,)``."""
         pick = lambda a: jnp.take_along_axis(a, actions.reshape((-1, 1) + (1,) * (a.ndim - 2)), axis=1)
         return dataclasses.replace(self, relaxation=self.relaxation.restrict(actions),
-                                   cluster_slots=pick(self.cluster_slots), cluster_lower=pick(self.cluster_lower),
+                                   cluster_members=self.cluster_members.map(pick), cluster_lower=pick(self.cluster_lower),
                                    cluster_upper=pick(self.cluster_upper), lp_index=pick(self.lp_index),
                                    screen=None if self.screen is None else self.screen.restrict(actions),
                                    frozen=None if self.frozen is None else pick(self.frozen))
@@ -276,11 +293,11 @@ class MIMDP(AbstractionMixin):
         an upper bound of the maximum. ``(R, A)``, or ``(R,)`` with ``actions: (R,)``."""
         minimize = check_adversary(adversary)
         imdp = self.relaxation
-        arrays = (imdp.successors, imdp.lower, imdp.upper, self.cluster_slots, self.cluster_lower,
+        arrays = (imdp.successors, imdp.lower, imdp.upper, self.cluster_members, self.cluster_lower,
                   self.cluster_upper, self.lp_index) + (() if self.frozen is None else (self.frozen,))
         if actions is not None:
-            arrays = tuple(jnp.take_along_axis(a, actions.reshape((-1, 1) + (1,) * (a.ndim - 2)), axis=1)[:, 0]
-                           for a in arrays)
+            pick = lambda a: jnp.take_along_axis(a, actions.reshape((-1, 1) + (1,) * (a.ndim - 2)), axis=1)[:, 0]
+            arrays = tuple(a.map(pick) if isinstance(a, ClusterRuns) else pick(a) for a in arrays)
         succ, lower, upper, slots, clo, cup, lp, *frozen = arrays
         w = v if minimize else -v
         imdp_value = None
@@ -298,7 +315,7 @@ class MIMDP(AbstractionMixin):
     def _screen_margin(self) -> float:
         # the rounding of the IMDP's and the SMDP's sums (K and C_b + 1 terms of total <= 1); a
         # wider margin only solves more LPs
-        terms = self.relaxation.successors.shape[-1] + self.screen.clusters.shape[2] + 8
+        terms = self.relaxation.width + self.screen.clusters.shape[2] + 8
         return 4.0 * float(np.finfo(np.float64).eps) * terms
 
     def _pinned(self, imdp_value, v, adversary, actions=None):
@@ -332,7 +349,7 @@ class MIMDP(AbstractionMixin):
         contender = high >= low.max(axis=1, keepdims=True) - margin
         pinned = high <= low + margin  # the IMDP value is already the MI-MDP's, within the margin
         lp = jnp.where(contender & ~pinned, self.lp_index, -1)
-        return _certified_min(v, imdp.successors, imdp.lower, imdp.upper, imdp.upper_rest, self.cluster_slots,
+        return _certified_min(v, imdp.successors, imdp.lower, imdp.upper, imdp.upper_rest, self.cluster_members,
                               self.cluster_lower, self.cluster_upper, self.multipliers(v, lp), self.multiplier_cap,
                               imdp_value=low)
 
@@ -347,10 +364,92 @@ class MIMDP(AbstractionMixin):
         return jax.pure_callback(host, shape, w, lp_index, vmap_method="sequential")
 
     def __repr__(self):
-        r, a, j, size = self.cluster_slots.shape
-        k = self.relaxation.successors.shape[2]
+        r, a, j = self.cluster_members.start.shape[:3]
+        size, k = self.cluster_members.size, self.relaxation.width
         return (f"MIMDP(|S|={self.num_states}, rows={r}, |A|={a}, max successors={k}, clusters per row={j}, "
                 f"max cluster size={size}, memory={self.nbytes / 1e6:.2f} MB)")
+
+
+@pytree_dataclass
+class ClusterRuns:
+    """Clusters as runs of consecutive positions in their row's sorted successor list.
+
+    A box of cells is, per line along the last grid dimension, one run of consecutive cell ids,
+    hence of consecutive positions in the sorted list (every cell between two members is a
+    member): a 4 x 4 cluster is 4 runs of 4 positions, stored as 4 starts and 4 lengths instead
+    of 16 positions. Any set of positions has a run encoding, so the encoding is lossless for
+    every cluster (user-given ones included, at worst one run per member).
+
+    Attributes:
+        start: ``(..., J, M)`` first position of each run (the type of the positions), ``pad``
+            on padding runs.
+        length: ``(..., J, M)`` uint8 positions per run (0 on padding runs).
+        longest: the longest run (static).
+        pad: the padding position ``K`` (static).
+        size: the most members any cluster has (static).
+    """
+
+    start: jax.Array
+    length: jax.Array
+    longest: int = static_field(default=1)
+    pad: int = static_field(default=0)
+    size: int = static_field(default=1)
+
+    @classmethod
+    def from_slots(cls, slots, pad: int, rows_per_chunk: int | None = None) -> "ClusterRuns":
+        """Runs of the sorted positions ``slots (R, A, J, L)`` (padding ``pad`` at the end of
+        each cluster), a chunk of rows at a time (default: ~4M positions, a few int64
+        temporaries of 32 MB)."""
+        slots = np.asarray(slots)
+        rows_per_chunk = rows_per_chunk or max(1, _RUN_POSITIONS_PER_CHUNK // max(1, math.prod(slots.shape[1:])))
+        parts = [_runs(slots[i:i + rows_per_chunk], pad) for i in range(0, slots.shape[0], rows_per_chunk)]
+        most = max(max(p[0].shape[-1] for p in parts), 1)
+        widen = lambda a, fill: np.pad(a, [(0, 0)] * (a.ndim - 1) + [(0, most - a.shape[-1])], constant_values=fill)
+        start = np.concatenate([widen(p[0], pad) for p in parts]).astype(slots.dtype)
+        length = np.concatenate([widen(p[1], 0) for p in parts])
+        longest = int(length.max(initial=1))
+        if longest > np.iinfo(np.uint8).max:
+            raise ValueError(f"a run of {longest} positions does not fit the uint8 run lengths")
+        size = int((slots < pad).sum(-1).max(initial=1))
+        return cls(start=jnp.asarray(start), length=jnp.asarray(length.astype(np.uint8)), longest=max(longest, 1),
+                   pad=int(pad), size=max(size, 1))
+
+    @property
+    def slots_shape(self) -> tuple:
+        """Shape of ``slots()``: ``(..., J, M * longest)``."""
+        return tuple(self.start.shape[:-1]) + (self.start.shape[-1] * self.longest,)
+
+    def map(self, fn) -> "ClusterRuns":
+        """``fn`` applied to ``start`` and ``length`` (a take, a slice, a reshape of the leading axes)."""
+        return dataclasses.replace(self, start=fn(self.start), length=fn(self.length))
+
+    def slots(self):
+        """``(..., J, M * longest)`` int32 positions of the members, padded with ``pad``."""
+        step = jnp.arange(self.longest, dtype=jnp.int32)
+        positions = self.start.astype(jnp.int32)[..., None] + step
+        positions = jnp.where(step < self.length.astype(jnp.int32)[..., None], positions, self.pad)
+        return positions.reshape(self.slots_shape)
+
+
+def _runs(slots, pad):
+    """``(start (..., J, M), length (..., J, M))`` of the runs of consecutive positions in each
+    sorted cluster ``slots (..., J, L)`` (padding ``pad`` last); ``M`` the most runs of any."""
+    s = slots.astype(np.int64)
+    real = s < pad
+    s_real = np.where(real, s, -2)  # padding continues no run (pad may follow K - 1)
+    before = np.concatenate([np.full(s.shape[:-1] + (1,), -2), s_real[..., :-1]], axis=-1)
+    after = np.concatenate([s_real[..., 1:], np.full(s.shape[:-1] + (1,), -2)], axis=-1)
+    first = real & (s != before + 1)
+    last = real & (after != s + 1)
+    run = np.cumsum(first, axis=-1) - 1  # run index of each member
+    most = int(first.sum(-1).max(initial=0))
+    lead = s.shape[:-1]
+    start = np.full(lead + (most,), pad, np.int64)
+    length = np.zeros(lead + (most,), np.int64)
+    where_first, where_last = np.nonzero(first), np.nonzero(last)  # the same runs, in the same order
+    start[where_first[:-1] + (run[where_first],)] = s[where_first]
+    length[where_first[:-1] + (run[where_first],)] = where_last[-1] - where_first[-1] + 1
+    return start, length
 
 
 # -- the certified inner value ------------------------------------------------------------------
@@ -362,7 +461,8 @@ def certified_min(w, succ, lower, upper, upper_rest, slots, cluster_lower, clust
         w: ``(N+1,)`` costs.
         succ, lower, upper: ``(..., K)`` the interval polytope (as in ``interval_min``).
         upper_rest: upper bound of every unlisted state.
-        slots: ``(..., J, L)`` cluster members as positions in ``succ`` (padding ``>= K``).
+        slots: ``(..., J, L)`` cluster members as positions in ``succ`` (padding ``>= K``), or
+            ``ClusterRuns`` with leading shape ``(..., J)`` (expanded a chunk of rows at a time).
         cluster_lower, cluster_upper: ``(..., J)`` cluster bounds.
         lam: ``(..., J, 2)`` multipliers (lambda+, lambda-); clipped to ``[0, cap]``.
         imdp_value: ``(...)`` the interval problem's value ``g(0)`` if the caller has it already
@@ -379,12 +479,20 @@ def certified_min(w, succ, lower, upper, upper_rest, slots, cluster_lower, clust
     batch, k = succ.shape[:-1], succ.shape[-1]
     rows = int(np.prod(batch)) if batch else 1
     flat = lambda a, tail: a.reshape(rows, *a.shape[a.ndim - tail:])
-    arrays = (flat(succ, 1), flat(lower, 1), flat(upper, 1), flat(slots, 2), flat(cluster_lower, 1),
+    runs = slots.map(lambda a: flat(a, 2)) if isinstance(slots, ClusterRuns) else None
+    members = (runs.start, runs.length) if runs is not None else (flat(slots, 2),)
+    arrays = (flat(succ, 1), flat(lower, 1), flat(upper, 1), *members, flat(cluster_lower, 1),
               flat(cluster_upper, 1), flat(lam, 2))
     if imdp_value is not None:
         arrays += (jnp.reshape(imdp_value, (rows,)),)
-    kernel = lambda *part: _certified_min_rows(w, upper_rest, *part, cap=cap)
-    terms = max(1, int(np.prod(slots.shape[-2:])))
+
+    def kernel(*part):
+        head, tail = part[:3], part[3 + len(members):]
+        part_slots = (dataclasses.replace(runs, start=part[3], length=part[4]).slots() if runs is not None
+                      else part[3])
+        return _certified_min_rows(w, upper_rest, *head, part_slots, *tail, cap=cap)
+
+    terms = max(1, int(np.prod(runs.slots_shape[-2:] if runs is not None else slots.shape[-2:])))
     chunk = rows_per_chunk or max(1, _MEMBER_TERMS_PER_CHUNK // terms)
     if chunk >= rows:
         return kernel(*arrays).reshape(batch)

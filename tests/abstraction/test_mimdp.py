@@ -10,9 +10,9 @@ import pytest
 from scipy.optimize import linprog
 
 import smdpjax as sj
-from smdpjax.abstraction import IMDP, SMDP, cluster_members, compute_grid_clusters
+from smdpjax.abstraction import IMDP, SMDP, CompactIMDP, cluster_members, compute_grid_clusters
 from smdpjax.abstraction.clusters import max_lengths
-from smdpjax.abstraction.mimdp import MIMDP, interval_min_rows
+from smdpjax.abstraction.mimdp import MIMDP, ClusterRuns, certified_min, interval_min_rows
 
 
 def q_values(abstraction, v, adversary="min"):
@@ -377,10 +377,58 @@ def test_jit_while_loop_and_restrict(small):
     np.testing.assert_allclose(picked, full[np.arange(mimdp.num_rows), np.asarray(actions)], atol=1e-7)
 
 
+
+def test_relaxation_is_stored_compactly_and_losslessly(small_clusters):
+    # the padded views the inner problem reads are the padded IMDP's arrays exactly (the informed
+    # clusters alone: no extension of the lists)
+    grid, clusters, _ = small_clusters
+    mimdp = MIMDP.from_clusters(grid, clusters)
+    padded = IMDP.from_clusters(grid, clusters)
+    assert isinstance(mimdp.relaxation, CompactIMDP) and mimdp.relaxation.width == padded.successors.shape[-1]
+    for name in ("successors", "lower", "upper"):
+        np.testing.assert_array_equal(np.asarray(getattr(mimdp.relaxation, name)), np.asarray(getattr(padded, name)))
+    assert mimdp.relaxation.nbytes < padded.nbytes
+    v = jnp.asarray(np.random.default_rng(7).uniform(size=grid.num_states))
+    np.testing.assert_allclose(q_values(mimdp.relaxation, v), q_values(padded, v), rtol=0, atol=1e-14)
+
+
+def test_cluster_runs_hold_exactly_the_members():
+    pad = 12
+    slots = np.array([[[[0, 1, 2, 5, 6, 9, pad, pad],  # three runs
+                        [10, 11, pad, pad, pad, pad, pad, pad],  # a run ending at K - 1, then the padding K
+                        [pad] * 8,  # a padding cluster
+                        [3, 4, 5, 6, 7, 8, 9, 11]]]], np.uint8)
+    runs = ClusterRuns.from_slots(slots, pad)
+    assert runs.start.shape == (1, 1, 4, 3) and runs.longest == 7 and runs.size == 8 and runs.length.dtype == np.uint8
+    np.testing.assert_array_equal(np.asarray(runs.start[0, 0, 0]), [0, 5, 9])
+    np.testing.assert_array_equal(np.asarray(runs.length[0, 0, 0]), [3, 2, 1])
+    expanded = np.asarray(runs.slots())
+    for j in range(4):
+        members = expanded[0, 0, j]
+        np.testing.assert_array_equal(np.sort(members[members < pad]), slots[0, 0, j][slots[0, 0, j] < pad])
+        assert np.all(members[members >= pad] == pad)
+
+
+def test_cluster_runs_give_the_backup_of_the_member_positions(small):
+    # the MI-MDP's runs against the positions they stand for, in the certified bound: the same
+    # sums, up to the order XLA adds them in (the rounding allowance counts every summand)
+    grid, _, mimdp, _ = small
+    imdp = mimdp.relaxation
+    runs = mimdp.cluster_members
+    assert runs.start.shape[-1] < runs.size  # fewer runs than members: the encoding is smaller
+    v = jnp.asarray(np.random.default_rng(11).uniform(size=grid.num_states))
+    lam = jnp.asarray(np.random.default_rng(12).exponential(0.5, runs.start.shape[:3] + (2,)))
+    args = (v, imdp.successors, imdp.lower, imdp.upper, imdp.upper_rest)
+    tail = (mimdp.cluster_lower, mimdp.cluster_upper, lam, 4.0)
+    dense = np.asarray(certified_min(*args, runs.slots(), *tail))
+    np.testing.assert_allclose(np.asarray(certified_min(*args, runs, *tail)), dense, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(certified_min(*args, runs, *tail, rows_per_chunk=7)), dense, rtol=0,
+                               atol=1e-15)
+
 def test_pytree_leaves_and_repr(small):
     _, _, mimdp, _ = small
     leaves = jax.tree_util.tree_leaves(mimdp)
-    assert any(leaf is mimdp.relaxation.successors for leaf in leaves)
+    assert any(leaf is mimdp.relaxation.chunk_succ for leaf in leaves)
     assert mimdp.nbytes > mimdp.relaxation.nbytes
     assert mimdp.summands_per_backup > mimdp.relaxation.summands_per_backup
     assert "MIMDP(" in repr(mimdp) and mimdp.kind == "mimdp"
