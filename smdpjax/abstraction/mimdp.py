@@ -411,8 +411,8 @@ class ClusterRuns:
         if longest > np.iinfo(np.uint8).max:
             raise ValueError(f"a run of {longest} positions does not fit the uint8 run lengths")
         size = int((slots < pad).sum(-1).max(initial=1))
-        return cls(start=jnp.asarray(start), length=jnp.asarray(length.astype(np.uint8)), longest=max(longest, 1),
-                   pad=int(pad), size=max(size, 1))
+        return cls(start=jnp.asarray(start), length=jnp.asarray(length.astype(np.uint8)), longest=longest,
+                   pad=int(pad), size=size)
 
     @property
     def slots_shape(self) -> tuple:

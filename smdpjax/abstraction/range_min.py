@@ -139,7 +139,7 @@ class RangeSpec:
     def corners(self) -> tuple:
         """Windows per dimension a query reads: 1 with every length, or when every length is 1 or
         2 (the two power-of-two windows coincide, since l = 2^floor(log2 l)); else 2."""
-        return tuple(1 if e or m <= 2 else 2 for e, m in zip(self.every_length, self.max_lengths))
+        return _corners(self.max_lengths, self.every_length)
 
     @property
     def index_dtype(self):
@@ -149,6 +149,10 @@ class RangeSpec:
 
 def _levels(max_lengths, every_length) -> tuple:
     return tuple(m if e else m.bit_length() for m, e in zip(max_lengths, every_length))
+
+
+def _corners(max_lengths, every_length) -> tuple:
+    return tuple(1 if e or m <= 2 else 2 for m, e in zip(max_lengths, every_length))
 
 
 def _extended(cells, periodic, max_lengths) -> tuple:
@@ -163,7 +167,7 @@ def default_every_length(cells, periodic, max_lengths, budget: int = TABLE_BUDGE
     switch halves the lookups per query; in 3-D and up a query keeps at least two."""
     every = [False] * len(cells)
     size = lambda e: math.prod(_levels(max_lengths, e)) * math.prod(_extended(cells, periodic, max_lengths))
-    lookups = lambda e: math.prod(1 if x or m <= 2 else 2 for x, m in zip(e, max_lengths))
+    lookups = lambda e: math.prod(_corners(max_lengths, e))
     fewest = FEWEST_LOOKUPS_3D if len(cells) >= 3 else 1
     for d in sorted(range(len(cells)), key=lambda d: max_lengths[d]):
         if max_lengths[d] <= 2:
