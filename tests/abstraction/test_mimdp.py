@@ -683,3 +683,52 @@ def test_unsolved_lps_are_reported_with_their_cell_and_action(backend):
     assert cell == int(np.asarray(starved.rows)[p // system.num_actions]) and action == p % system.num_actions
     # still sound: never above the values of the solved LPs (each a valid lower bound on the true min)
     assert np.all(loose <= good + 1e-8)
+
+
+def test_slots_of_reads_a_table_that_is_never_cleared(monkeypatch):
+    """Positions of ids in sorted lists, through a position table reused block after block (3
+    lists per block here): stale entries of earlier lists must not be read as positions."""
+    from smdpjax.abstraction import mimdp as mimdp_module
+
+    rng = np.random.default_rng(3)
+    n, k = 30, 8
+    sentinel = n + 1
+    succ = np.sort(np.stack([rng.choice(n + 1, size=k, replace=False) for _ in range(20)]), axis=1)
+    succ[::4, -2:] = sentinel  # padded lists
+    succ = succ.reshape(5, 4, k)
+    members = np.where(rng.random((5, 4, 3, 6)) < 0.8,
+                       np.take_along_axis(succ[:, :, None, :], rng.integers(0, k, (5, 4, 3, 6)), axis=-1), sentinel)
+    members = np.where(members > n, sentinel, members)
+    want = np.full(members.shape, k)
+    for idx in np.ndindex(members.shape):
+        row = succ[idx[:2]]
+        if members[idx] < sentinel:
+            want[idx] = int(np.flatnonzero(row == members[idx])[0])
+    monkeypatch.setattr(mimdp_module, "_SLOT_TABLE_ENTRIES", 3 * (sentinel + 1))
+    np.testing.assert_array_equal(mimdp_module._slots_of(succ, members, sentinel), want)
+    missing = members.copy()
+    absent = next(s for s in range(n) if s not in succ[4, 3])
+    missing[4, 3, 0, 0] = absent  # an id the list of the last block does not hold, listed by earlier ones
+    with pytest.raises(AssertionError, match="missing"):
+        mimdp_module._slots_of(succ, missing, sentinel)
+
+
+@pytest.mark.parametrize("weights", [None, "colliding"])
+def test_grouped_order_puts_equal_rows_of_a_group_next_to_each_other(weights):
+    """Equal rows of a group adjacent and in their original order (the first one is kept), with
+    the hash of the rows and with weights whose hashes collide ([1, 2] and [2, 1] with weights 1:
+    the full sort is used)."""
+    from smdpjax.abstraction.mimdp import _grouped_order
+
+    rng = np.random.default_rng(0)
+    rows = rng.integers(0, 3, (200, 2))
+    group = rng.integers(0, 4, 200)
+    w = None if weights is None else np.ones(2, np.uint64)
+    order = _grouped_order(rows, group, w)
+    assert sorted(order.tolist()) == list(range(200))
+    seen = {}
+    for pos, i in enumerate(order):
+        key = (int(group[i]), *rows[i].tolist())
+        if key in seen:  # adjacent to its equal, after it in the original order
+            assert seen[key][0] == pos - 1 and seen[key][1] < i
+        seen[key] = (pos, int(i))

@@ -1,0 +1,98 @@
+"""The LP data of ``lp.ClusterLPs``, built for all LPs at once (``LPTable``), against a per-LP
+construction written out directly from the surrogate LP of the module docstring."""
+
+import numpy as np
+import pytest
+
+from smdpjax.abstraction.lp import ClusterLPs, LPTable
+
+
+def per_lp_reference(succ, lower, upper, rest, slots, clo, cup, num_states, max_buckets=16):
+    """Every LP's data, one LP at a time (the construction before ``LPTable``)."""
+    width = succ.shape[1]
+    lps = []
+    for p in range(succ.shape[0]):
+        listed = succ[p] < num_states
+        cap = np.where(listed, upper[p] - lower[p], 0.0)
+        low = np.where(listed, lower[p], 0.0)
+        n_unlisted = num_states - listed.sum()
+        if rest > 0:
+            b = min(n_unlisted, min(max_buckets, int(np.ceil(1.0 / rest - 1e-9))))
+            b = 0 if n_unlisted * rest <= 1e-6 else b
+            has_rest = n_unlisted > b
+        else:
+            b, has_rest = 0, False
+        free = 1.0 - low.sum()
+        var_slots = np.flatnonzero(listed & (cap > 0))
+        var_of_slot = np.full(width, -1)
+        var_of_slot[var_slots] = np.arange(var_slots.size)
+        caps = np.concatenate([cap[var_slots], np.full(b, rest), [(n_unlisted - b) * rest] if has_rest else []])
+        cost_src = np.concatenate([var_slots, width + np.arange(b), [width + b] if has_rest else []])
+        rows, ptr, var, los, his = [], [0], [], [], []
+        for j in range(slots.shape[1]):
+            members = [int(s) for s in slots[p, j] if s < width]
+            fixed, room = low[members].sum(), cap[members].sum()
+            ids = [int(var_of_slot[s]) for s in members if var_of_slot[s] >= 0]
+            use_lo = clo[p, j] - fixed > 1e-12 and ids
+            use_hi = max(cup[p, j] - fixed, 0.0) < min(room, free) - 1e-12 and ids
+            if use_lo or use_hi:
+                rows.append(j)
+                var += ids
+                ptr.append(len(var))
+                los.append(min(clo[p, j] - fixed, room) if use_lo else -np.inf)
+                his.append(max(cup[p, j] - fixed, 0.0) if use_hi else np.inf)
+        lps.append(dict(caps=caps, cost_src=cost_src, free_mass=free, cluster=np.array(rows, int),
+                        ptr=np.array(ptr), var=np.array(var, int), lo=np.array(los), hi=np.array(his)))
+    return lps
+
+
+def random_lps(seed, rest):
+    rng = np.random.default_rng(seed)
+    p, k, j, l, n = 23, 9, 5, 4, 40
+    succ = np.sort(rng.choice(n, size=(p, k)), axis=1)
+    succ = np.where(rng.random((p, k)) < 0.2, n + 1, succ)  # padding anywhere
+    succ = np.sort(np.where(np.diff(succ, prepend=-1, axis=1) == 0, n + 1, succ), axis=1)  # distinct ids
+    upper = np.where(succ < n, rng.uniform(0.05, 0.6, (p, k)), 0.0) + rest
+    lower = np.where((succ < n) & (rng.random((p, k)) < 0.3), rng.uniform(0, 0.04, (p, k)), 0.0)
+    upper = np.where(rng.random((p, k)) < 0.1, lower, upper)  # some fixed entries (no variable)
+    slots = np.sort(np.where(rng.random((p, j, l)) < 0.8, rng.integers(0, k, (p, j, l)), k), axis=-1)
+    clo, cup = rng.uniform(0, 0.3, (p, j)), rng.uniform(0.2, 1.0, (p, j))
+    return succ, lower, upper, rest, slots, clo, cup, n
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("rest", [0.0, 0.004, 0.2])
+def test_lp_table_equals_the_per_lp_construction(seed, rest):
+    args = random_lps(seed, rest)
+    lps = ClusterLPs(*args)
+    reference = per_lp_reference(*args)
+    assert isinstance(lps._lps, LPTable) and len(lps._lps) == len(reference)
+    assert sum(r["cluster"].size for r in reference) > 0 and sum(r["caps"].size for r in reference) > 0
+    for p, (got, want) in enumerate(zip(lps._lps, reference)):
+        assert got.keys() == want.keys()
+        for key in want:
+            np.testing.assert_array_equal(np.asarray(got[key]), np.asarray(want[key]), err_msg=f"LP {p} {key}")
+    np.testing.assert_array_equal(lps.num_vars, [r["caps"].size for r in reference])
+    sides = [int(np.isfinite(r["lo"]).sum() + np.isfinite(r["hi"]).sum()) for r in reference]
+    np.testing.assert_array_equal(lps.num_cluster_rows, sides)
+    assert lps.nnz == sum(3 * r["caps"].size + 2 * r["var"].size for r in reference)
+
+
+def test_lp_table_concatenates_blocks_with_empty_lps():
+    """Blocks whose LPs have no variables or no cluster rows keep every LP's pieces in place."""
+    def table(caps_per_lp, rows_per_lp, members_per_row):
+        caps = np.concatenate([np.full(c, float(i)) for i, c in enumerate(caps_per_lp)])
+        start = lambda counts: np.concatenate([[0], np.cumsum(counts)])
+        rows = int(sum(rows_per_lp))
+        return LPTable(caps=caps, cost_src=np.arange(caps.size, dtype=np.int32), var_start=start(caps_per_lp),
+                       free_mass=np.arange(len(caps_per_lp), dtype=float), cluster=np.arange(rows, dtype=np.int32),
+                       lo=np.zeros(rows), hi=np.ones(rows), row_start=start(rows_per_lp),
+                       var=np.arange(int(sum(members_per_row))), member_start=start(members_per_row))
+
+    a, b = table([2, 0, 3], [1, 0, 2], [2, 1, 3]), table([0, 4], [0, 1], [4])
+    both = LPTable.concatenate([a, b])
+    assert len(both) == 5
+    for got, want in zip(both, [*a, *b]):
+        for key in want:
+            np.testing.assert_array_equal(np.asarray(got[key]), np.asarray(want[key]), err_msg=key)
+    assert both[3]["caps"].size == 0 and both[3]["cluster"].size == 0 and both[4]["ptr"].tolist() == [0, 4]
