@@ -128,3 +128,31 @@ def test_bad_input_is_rejected():
         region_bounds((4, 4), (False, False), boxes, jnp.ones(4) / 4)
     with pytest.raises(ValueError, match="dimensions"):
         region_bounds((4, 4, 4), (False,) * 3, boxes, jnp.ones(3) / 3)
+
+
+def test_quantized_widths_grow_by_at_most_half():
+    from smdpjax.abstraction.box_bounds import quantized_width
+
+    widths = [quantized_width(w) for w in range(1, 5000)]
+    assert widths[:32] == [32] * 32 and all(q >= w for w, q in zip(range(1, 5000), widths))
+    assert all(q <= 1.5 * w for w, q in zip(range(33, 5000), widths[32:]))
+    assert len(set(widths)) == 16  # 32, 48, 64, 96, ... 4096, 6144
+
+
+def test_chunk_widths_do_not_change_the_lists(monkeypatch):
+    """Chunks of 2 rows whose lists are cut to 2, 3, 4, 6, ... slots (not 32 and up) give the
+    same lists as one chunk."""
+    from smdpjax.abstraction import box_bounds
+
+    cells, periodic, block = (9, 7), (False, True), (1, 1)
+    rng = np.random.default_rng(5)
+    boxes = random_boxes(rng, cells, periodic, 6, 2, 12)
+    prob = jnp.asarray(random_prob(rng, 12))
+    whole = [np.asarray(t) for t in region_bounds(cells, periodic, boxes, prob, block)]
+    monkeypatch.setattr(box_bounds, "ROWS_PER_CHUNK", 4)
+    monkeypatch.setattr(box_bounds, "_WIDTH_QUANTUM", 2)
+    chunked = [np.asarray(t) for t in region_bounds(cells, periodic, boxes, prob, block)]
+    assert whole[0].shape[-1] > 2
+    for a, b in zip(whole, chunked):
+        assert a.dtype == b.dtype
+        np.testing.assert_array_equal(a, b)
