@@ -43,7 +43,7 @@ from .clusters import IndexBoxes
 ROWS_PER_CHUNK = 1 << 11
 # P_W is summed exactly as integer multiples of 2^-FRACTION_BITS (sums of probabilities stay < 2^63).
 FRACTION_BITS = 61
-# Successor-list widths of chunks are rounded up to at least this many slots (``quantized_width``).
+# Successor-list widths of chunks are rounded up to at least this many slots (``_quantized_width``).
 _WIDTH_QUANTUM = 32
 
 
@@ -93,7 +93,7 @@ def region_bounds(cells, periodic, boxes: IndexBoxes, prob, block=None):
     for part, (anchor, _) in zip(chunks(), windows):
         lower, upper = _window_bounds(geometry, size, part, anchor, prob)
         widths.append(int(jnp.max(jnp.sum(upper > 0, axis=-1))))
-        chunk_width = max(1, min(upper.shape[-1], quantized_width(widths[-1])))
+        chunk_width = max(1, min(upper.shape[-1], _quantized_width(widths[-1])))
         pieces.append(_compact(geometry, size, anchor, lower, upper, chunk_width))
     width = max(widths)  # padding rows copy a real row, so they never widen the lists
     sentinel = math.prod(_regions_per_dim(geometry)) + 1
@@ -108,7 +108,7 @@ def region_bounds(cells, periodic, boxes: IndexBoxes, prob, block=None):
     return ids, lower, upper
 
 
-def quantized_width(width: int) -> int:
+def _quantized_width(width: int) -> int:
     """The least of ``_WIDTH_QUANTUM * {1, 1.5, 2, 3, 4, 6, ...}`` that holds ``width`` slots.
 
     Each distinct width of a chunk's lists is one more compilation of ``_compact`` and of the

@@ -747,12 +747,9 @@ def _distinct_clusters(slots, lo, up, k):
     count = (slots < k).sum(-1)
     flat = slots.reshape(r * a * c, size)
     group = np.repeat(np.arange(r * a), c)
-    order = _grouped_order(flat, group)
-    s_sorted, g_sorted = flat[order], group[order]
-    repeat = np.zeros(flat.shape[0], bool)
-    repeat[1:] = (g_sorted[1:] == g_sorted[:-1]) & np.all(s_sorted[1:] == s_sorted[:-1], axis=1)
+    order, repeat = _grouped_order(flat, group)
     duplicate = np.zeros(flat.shape[0], bool)
-    duplicate[order] = repeat
+    duplicate[order[1:]] = repeat
     keep = (count.ravel() >= 2) & ~duplicate
     keep = keep.reshape(r, a, c)
     j = int(keep.sum(-1).max(initial=0))
@@ -766,8 +763,9 @@ def _distinct_clusters(slots, lo, up, k):
 
 
 def _grouped_order(rows, group, weights=None):
-    """A stable order of ``rows (M, S)`` (integers) by ``group (M,)`` in which equal rows of a
-    group are adjacent.
+    """``(order (M,), repeat (M - 1,))``: a stable order of ``rows (M, S)`` (integers) by ``group
+    (M,)`` in which equal rows of a group are adjacent, and whether each row in that order after
+    the first equals the one before it in the same group.
 
     Sorted by a 64-bit hash of each row (a product with random odd weights, modulo 2^64) instead
     of by all ``S`` columns: a lexicographic sort over the 76 member positions of the 3-D
@@ -779,8 +777,15 @@ def _grouped_order(rows, group, weights=None):
     key = np.zeros(rows.shape[0], np.uint64)
     for i in range(rows.shape[1]):  # one column at a time: no (M, S) uint64 temporary
         key += rows[:, i].astype(np.uint64) * weights[i]
+
+    def adjacent(order):  # (same group, same row) of each row in ``order`` and the one before it
+        g, r = group[order], rows[order]
+        same_group = g[1:] == g[:-1]
+        return same_group, same_group & np.all(r[1:] == r[:-1], axis=1)
+
     order = np.lexsort((key, group))
-    same = (group[order][1:] == group[order][:-1]) & (key[order][1:] == key[order][:-1])
-    if np.any(same & np.any(rows[order][1:] != rows[order][:-1], axis=1)):  # a collision
+    same_group, repeat = adjacent(order)
+    if np.any(same_group & (key[order][1:] == key[order][:-1]) & ~repeat):  # a collision
         order = np.lexsort(tuple(rows[:, i] for i in range(rows.shape[1] - 1, -1, -1)) + (group,))
-    return order
+        repeat = adjacent(order)[1]
+    return order, repeat

@@ -131,9 +131,9 @@ def test_bad_input_is_rejected():
 
 
 def test_quantized_widths_grow_by_at_most_half():
-    from smdpjax.abstraction.box_bounds import quantized_width
+    from smdpjax.abstraction.box_bounds import _quantized_width
 
-    widths = [quantized_width(w) for w in range(1, 5000)]
+    widths = [_quantized_width(w) for w in range(1, 5000)]
     assert widths[:32] == [32] * 32 and all(q >= w for w, q in zip(range(1, 5000), widths))
     assert all(q <= 1.5 * w for w, q in zip(range(33, 5000), widths[32:]))
     assert len(set(widths)) == 16  # 32, 48, 64, 96, ... 4096, 6144

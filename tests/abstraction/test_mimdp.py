@@ -724,7 +724,7 @@ def test_grouped_order_puts_equal_rows_of_a_group_next_to_each_other(weights):
     rows = rng.integers(0, 3, (200, 2))
     group = rng.integers(0, 4, 200)
     w = None if weights is None else np.ones(2, np.uint64)
-    order = _grouped_order(rows, group, w)
+    order, _ = _grouped_order(rows, group, w)
     assert sorted(order.tolist()) == list(range(200))
     seen = {}
     for pos, i in enumerate(order):
