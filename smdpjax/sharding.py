@@ -147,7 +147,20 @@ def shard_abstraction(abstraction, mesh: Mesh | None = None):
     sharded = jax.tree_util.tree_map_with_path(place, abstraction)
     if getattr(sharded, "backup_rows", 0) != 0:  # an SMDP: each device backs up its own rows at once
         sharded = dataclasses.replace(sharded, backup_rows=0)
-    return _distinct_lps(sharded)
+    return _distinct_lps(_whole_rows(sharded))
+
+
+def _whole_rows(abstraction):
+    """``abstraction`` with every compact IMDP in it (the MI-MDP's relaxation too) solving all its
+    rows at once: blocks of rows (``imdp_compact.inner_blocks``) would slice the rows that the
+    devices split."""
+    if not dataclasses.is_dataclass(abstraction):
+        return abstraction
+    changes = {f.name: _whole_rows(getattr(abstraction, f.name)) for f in dataclasses.fields(abstraction)
+               if dataclasses.is_dataclass(getattr(abstraction, f.name))}
+    if hasattr(abstraction, "strategy_blocks"):
+        changes.update(block_rows=0, block_chunks=0, strategy_blocks=(0, 0))
+    return dataclasses.replace(abstraction, **changes) if changes else abstraction
 
 
 def unshard_abstraction(abstraction, device=None):

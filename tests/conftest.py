@@ -59,3 +59,23 @@ except ImportError:  # pragma: no cover
 @pytest.fixture
 def key():
     return jax.random.PRNGKey(0)
+
+
+@pytest.fixture
+def assert_same_q_values():
+    """``check(a, b, values, strategy, atol)``: two abstractions of the same rows give the same
+    q-values (both adversaries) for each value vector: every action, the fixed ``strategy``, and
+    after ``restrict(strategy)``."""
+    import numpy as np
+
+    q = jax.jit(lambda a, v, adversary, s: a.q_values(v, adversary, s), static_argnums=2)
+
+    def check(a, b, values, strategy, atol):
+        same = lambda x, y: np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=0, atol=atol)
+        for v in values:
+            for adversary in ("min", "max"):
+                for s in (None, strategy):
+                    same(q(a, v, adversary, s), q(b, v, adversary, s))
+                same(q(a.restrict(strategy), v, adversary, None), q(b.restrict(strategy), v, adversary, None))
+
+    return check

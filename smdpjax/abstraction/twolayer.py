@@ -30,7 +30,8 @@ Storage: the fine layer is kept sparse (per row and action the listed successors
 bounds as pairs); every backup lays the met blocks' capacities out in rank order (``upper_rest``
 on every cell, the listed bounds scattered over it) before the greedy, so only that transient,
 not the stored abstraction, has the ``(R, A, T, S)`` shape (row 38: 179 MB stored instead of
-2211 MB).
+2211 MB). On the CPU the rows are solved a block at a time (``imdp_compact.in_row_blocks``), so
+that transient is a block's, small enough to stay in the cache through the bisection.
 """
 
 from __future__ import annotations
@@ -48,8 +49,7 @@ from .box_bounds import region_bounds
 from .clusters import index_dtype
 from .grid_clusters import GridClusters
 from .imdp import value_ranking
-from .imdp_compact import chunk_lists
-
+from .imdp_compact import chunk_lists, in_row_blocks, inner_blocks
 
 
 def block_layout(grid, block) -> tuple[np.ndarray, np.ndarray]:
@@ -101,6 +101,8 @@ class TwoLayerIMDP(AbstractionMixin):
         upper_rest: P_W(remainder): upper bound of every state and every block.
         rows, labels: as in every abstraction.
         list_rows: rows that own chunks (``R`` until sharding pads the row arrays).
+        block_rows, block_chunks, strategy_blocks: the inner problem a block of rows at a time
+            (every action; one action per row), as ``CompactIMDP``'s (``imdp_compact.inner_blocks``).
 
     ``lower``, ``upper`` ``(R, A, T, S)`` are the dense fine bounds (built on access).
     """
@@ -119,6 +121,9 @@ class TwoLayerIMDP(AbstractionMixin):
     labels: jax.Array
     block_shape: tuple = static_field(default=())
     list_rows: int = static_field(default=0)
+    block_rows: int = static_field(default=0)
+    block_chunks: int = static_field(default=0)
+    strategy_blocks: tuple = static_field(default=(0, 0))
     kind: str = static_field(default="2imdp")
 
     @classmethod
@@ -151,12 +156,18 @@ class TwoLayerIMDP(AbstractionMixin):
         num_lower = int(jnp.max(jnp.sum((lower > 0) & listed, axis=-1), initial=0))
         c_slot, c_upper, row_j, l_slot, l_value = chunk_lists(slot, lower, upper, listed, widths, chunk, num_lower,
                                                               met_count * size)
+        # per row and action: the met blocks' capacities (T S, laid out in every backup) and the entries
+        slots = met_count * size + c_slot.shape[0] * c_slot.shape[2] / widths.size
+        on_cpu = jax.default_backend() == "cpu"  # as CompactIMDP.from_lists
+        row_blocks = lambda actions: inner_blocks(row_j, int(widths.size), actions * slots) if on_cpu else (0, 0)
+        block_rows, block_chunks = row_blocks(int(blocks.shape[1]))
         return cls(blocks=blocks.astype(index_dtype(num_blocks + 2)), block_lower=block_lower,
                    block_upper=block_upper,
                    chunk_slot=c_slot, chunk_upper=c_upper, chunk_row=row_j, lower_slot=l_slot, lower_value=l_value,
                    cells_of=jnp.asarray(cells_of), upper_rest=rest, rows=jnp.asarray(clusters.rows, jnp.int32),
                    labels=jnp.asarray(grid.state_labels), block_shape=tuple(int(b) for b in block),
-                   list_rows=int(widths.size))
+                   list_rows=int(widths.size), block_rows=block_rows, block_chunks=block_chunks,
+                   strategy_blocks=row_blocks(1))
 
     @property
     def num_actions(self) -> int:
@@ -189,7 +200,8 @@ class TwoLayerIMDP(AbstractionMixin):
                                    block_upper=pick(self.block_upper, by_row),
                                    chunk_slot=pick(self.chunk_slot, by_chunk),
                                    chunk_upper=pick(self.chunk_upper, by_chunk),
-                                   lower_slot=pick(self.lower_slot, by_row), lower_value=pick(self.lower_value, by_row))
+                                   lower_slot=pick(self.lower_slot, by_row), lower_value=pick(self.lower_value, by_row),
+                                   block_rows=self.strategy_blocks[0], block_chunks=self.strategy_blocks[1])
 
     def q_values(self, v, adversary: str = "min", actions=None):
         minimize = check_adversary(adversary)
@@ -197,14 +209,22 @@ class TwoLayerIMDP(AbstractionMixin):
         rows = self.list_rows or self.num_rows
         by_row = (self.blocks, self.block_lower, self.block_upper, self.lower_slot, self.lower_value)
         by_chunk = (self.chunk_slot, self.chunk_upper)
+        row_blocks = (self.block_rows, self.block_chunks)
         if actions is not None:
+            row_blocks = self.strategy_blocks
             pick = lambda a, act: jnp.take_along_axis(a, act[:, None, None], axis=1)[:, 0]
             by_row = tuple(pick(a, actions) for a in by_row)
             by_chunk = tuple(pick(a, actions[self.chunk_row]) for a in by_chunk)
-        blocks, block_lower, block_upper, lower_slot, lower_value = (a[:rows] for a in by_row)
-        value = _sparse_two_layer_min(w, block_ranking(w, self.cells_of), blocks, block_lower, block_upper,
-                                      *by_chunk, self.chunk_row, lower_slot, lower_value, self.cells_of,
-                                      self.upper_rest)
+        ranking = block_ranking(w, self.cells_of)
+
+        def solve(row_arrays, chunk_arrays, chunk_row):
+            blocks, block_lower, block_upper, lower_slot, lower_value = row_arrays
+            return _sparse_two_layer_min(w, ranking, blocks, block_lower, block_upper, *chunk_arrays, chunk_row,
+                                         lower_slot, lower_value, self.cells_of, self.upper_rest)
+
+        padding = self.num_block_slots * self.cells_of.shape[1]  # T S: no fine entry
+        value = in_row_blocks(solve, tuple(a[:rows] for a in by_row), by_chunk, (padding, 0.0), self.chunk_row,
+                              row_blocks)
         if self.num_rows > rows:  # rows padded by sharding repeat the last row
             value = value[jnp.minimum(jnp.arange(self.num_rows), rows - 1)]
         return value if minimize else -value

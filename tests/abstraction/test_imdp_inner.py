@@ -168,3 +168,48 @@ def test_abstract_imdp_is_compact_and_synthesizes_as_padded():
         np.testing.assert_allclose(np.asarray(a.lower), np.asarray(b.lower), rtol=0, atol=1e-12)
         np.testing.assert_allclose(np.asarray(a.upper), np.asarray(b.upper), rtol=0, atol=1e-12)
         np.testing.assert_array_equal(np.asarray(a.policy), np.asarray(b.policy))
+
+
+@pytest.mark.parametrize("rows_per_block", [1, 4, 7, None])
+def test_blocked_inner_problem_equals_all_rows_at_once(rows_per_block, assert_same_q_values):
+    """Rows solved a block at a time (``inner_blocks``; the last block overlaps the one before it,
+    rows own 1-3 chunks) give the values of all rows at once, for every action, a strategy and
+    ``restrict``."""
+    import dataclasses
+
+    from smdpjax.abstraction import imdp_compact
+
+    rng = np.random.default_rng(rows_per_block or 0)
+    n_states, rows, actions, rest = 40, 31, 3, 1e-3
+    compact = imdp_compact.CompactIMDP.from_imdp(random_padded_imdp(rng, n_states, rows, actions, rest), chunk=4)
+    whole = dataclasses.replace(compact, block_rows=0, block_chunks=0, strategy_blocks=(0, 0))
+    counts = np.bincount(np.asarray(compact.chunk_row))
+    assert counts.min() < counts.max()  # rows own different numbers of chunks
+    budget = int(np.ceil((rows_per_block or rows) * counts.mean() * actions * compact.chunk))
+    slots = compact.num_chunks * compact.chunk / rows  # per row and action
+    block_rows, block_chunks = imdp_compact.inner_blocks(compact.chunk_row, rows, actions * slots, budget)
+    if rows_per_block is None:
+        assert block_rows == 0  # everything fits one block
+    else:
+        assert block_rows == rows_per_block and (rows % block_rows or block_rows == 1)  # the last block overlaps
+        assert block_chunks == max(counts[s:s + block_rows].sum() for s in range(0, rows - block_rows + 1))
+    # one action per row: blocks of as many slots, so more rows
+    strategy_blocks = imdp_compact.inner_blocks(compact.chunk_row, rows, slots, budget)
+    blocked = dataclasses.replace(compact, block_rows=block_rows, block_chunks=block_chunks,
+                                  strategy_blocks=strategy_blocks)
+    assert blocked.restrict(jnp.zeros(rows, jnp.int32)).block_rows == strategy_blocks[0]
+    strategy = jnp.asarray(rng.integers(0, actions, rows), jnp.int32)
+    values = [jnp.asarray(rng.uniform(0, 1, n_states) if trial else rng.choice([0.0, 0.5, 1.0], n_states))
+              for trial in range(3)]
+    assert_same_q_values(blocked, whole, values, strategy, atol=4e-16)
+
+
+def test_inner_blocks_sizes():
+    from smdpjax.abstraction.imdp_compact import inner_blocks
+
+    chunk_row = np.repeat(np.arange(10), [1, 1, 1, 1, 1, 3, 3, 3, 3, 3])  # 20 chunks
+    assert inner_blocks(chunk_row, 10, 16, budget=1 << 20) == (0, 0)  # one block
+    # 16 slots a row: 2 rows a block; rows 5-9 own 3 chunks each, the last block is rows 8-9
+    assert inner_blocks(chunk_row, 10, 16, budget=32) == (2, 6)
+    assert inner_blocks(chunk_row, 10, 16, budget=48) == (3, 9)  # blocks 0-2, 3-5, 6-8, 7-9
+    assert inner_blocks(chunk_row, 10, 16, budget=1) == (1, 3)  # at least one row a block

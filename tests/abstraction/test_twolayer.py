@@ -169,3 +169,28 @@ def test_sparse_fine_layer_equals_dense_solver(name, block, chunk):
             fixed = np.asarray(q(tl, v, adversary, strategy))
             np.testing.assert_array_equal(fixed, got[np.arange(tl.num_rows), np.asarray(strategy)])
             np.testing.assert_array_equal(np.asarray(q(tl.restrict(strategy), v, adversary, None))[:, 0], fixed)
+
+
+@pytest.mark.parametrize("name, rows_per_block", [("gaussian", 1), ("gaussian", 7), ("uniform", 5)])
+def test_blocks_of_rows_equal_all_rows(name, rows_per_block, assert_same_q_values):
+    """The inner problem a block of rows at a time (the last block overlapping the one before it,
+    rows owning different numbers of chunks) gives the values of all rows at once: every action,
+    a fixed strategy, ``restrict``."""
+    import dataclasses
+
+    from smdpjax.abstraction.imdp_compact import inner_blocks
+
+    system, grid, noise = PROBLEMS[name]
+    tl = TwoLayerIMDP.from_clusters(grid, compute_grid_clusters(system, grid, noise), block=(2, 2), chunk=3)
+    rows = tl.num_rows
+    counts = np.bincount(np.asarray(tl.chunk_row))
+    assert counts.min() < counts.max() and (rows % rows_per_block or rows_per_block == 1)
+    whole = dataclasses.replace(tl, block_rows=0, block_chunks=0, strategy_blocks=(0, 0))
+    blocks = lambda actions: inner_blocks(tl.chunk_row, rows, actions, budget=actions * rows_per_block)
+    blocked = dataclasses.replace(tl, block_rows=blocks(tl.num_actions)[0], block_chunks=blocks(tl.num_actions)[1],
+                                  strategy_blocks=blocks(1))
+    assert blocked.block_rows == rows_per_block == blocked.strategy_blocks[0]
+    rng = np.random.default_rng(rows_per_block)
+    strategy = jnp.asarray(rng.integers(0, tl.num_actions, rows), jnp.int32)
+    values = [jnp.asarray(rng.uniform(0, 1, grid.num_states)).at[-1].set(0.0) for _ in range(2)]
+    assert_same_q_values(blocked, whole, values, strategy, atol=1e-15)
