@@ -59,17 +59,17 @@ def measure(row: int, repeats: int, budget: int | None) -> dict:
     imdp = lambda a: a if not hasattr(a, "relaxation") else a.relaxation  # what q_values times
     v = jax.numpy.asarray(np.random.default_rng(0).random(abstraction.num_states))
     solve_times, call_times, solutions = {k: [] for k in variants}, {k: [] for k in variants}, {}
-    calls = {k: jax.jit(lambda w, a=imdp(a): a.q_values(w, "min")) for k, a in variants.items()}
+    call = jax.jit(lambda a, w: a.q_values(w, "min"))  # the abstraction an argument, as synthesize has it
     for name, a in variants.items():  # compile
         solutions[name] = jax.block_until_ready(study.solve(a))
-        jax.block_until_ready(calls[name](v))
+        jax.block_until_ready(call(imdp(a), v))
     for _ in range(repeats):
         for name, a in variants.items():
             start = time.perf_counter()
             solutions[name] = jax.block_until_ready(study.solve(a))
             solve_times[name].append(time.perf_counter() - start)
             start = time.perf_counter()
-            jax.block_until_ready(calls[name](v))
+            jax.block_until_ready(call(imdp(a), v))
             call_times[name].append(time.perf_counter() - start)
     blocked, whole = solutions["blocked"], solutions["all rows"]
     diff = max(float(np.max(np.abs(np.asarray(blocked.lower) - np.asarray(whole.lower)))),
