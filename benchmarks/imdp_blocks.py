@@ -1,7 +1,7 @@
 """The IMDP's and 2I-MDP's inner problems a block of rows at a time against all rows at once.
 
-For each Table 1 row (IMDP, 2I-MDP, or the MI-MDP's relaxation) the abstraction is built once, then ``study.solve`` (T_syn as
-Table 1 times it) runs alternately with the rows in blocks (``imdp_compact.inner_blocks``, the
+For each Table 1 row (IMDP, 2I-MDP, or the MI-MDP's relaxation) the abstraction is built once,
+then ``study.solve`` (T_syn as Table 1 times it) runs alternately with the rows in blocks (``imdp_compact.inner_blocks``, the
 default) and with all rows at once (``block_rows=0``), ``--repeats`` times each after a compiling
 run, in one process, so that both see the same load. Reports the medians, their ratio, the
 largest difference of the bounds, and one ``q_values`` call of each (median of ``--repeats``).
@@ -23,21 +23,17 @@ from .common import argument_parser, median, write_result
 def with_blocks(abstraction, budget: int | None):
     """``abstraction`` (a compact IMDP, a 2I-MDP, or an MI-MDP's relaxation) blocked for
     ``budget`` slots a block (``None``: the library's default; 0: all rows at once)."""
-    from smdpjax.abstraction.imdp_compact import CompactIMDP, inner_blocks
+    from smdpjax.abstraction.imdp_compact import CompactIMDP, block_fields
     from smdpjax.abstraction.twolayer import TwoLayerIMDP
 
     def blocked(a):
-        if budget == 0:
-            return dataclasses.replace(a, block_rows=0, block_chunks=0, strategy_blocks=(0, 0))
         if budget is None:
             return a
         rows = a.list_rows or a.num_rows
         slots = a.num_chunks * a.chunk / rows  # per row and action, as the classes count them
         if isinstance(a, TwoLayerIMDP):
             slots += a.num_block_slots * a.cells_of.shape[1]
-        blocks = lambda actions: inner_blocks(np.asarray(a.chunk_row), rows, actions * slots, budget)
-        rows, chunks = blocks(a.num_actions)
-        return dataclasses.replace(a, block_rows=rows, block_chunks=chunks, strategy_blocks=blocks(1))
+        return dataclasses.replace(a, **block_fields(np.asarray(a.chunk_row), rows, a.num_actions, slots, budget))
 
     if isinstance(abstraction, (CompactIMDP, TwoLayerIMDP)):
         return blocked(abstraction)

@@ -144,15 +144,11 @@ class CompactIMDP(AbstractionMixin):
         num_lower = int(jnp.max(jnp.sum((lower > 0) & listed, axis=-1), initial=0))
         c_succ, c_upper, chunk_row, l_succ, l_value = chunk_lists(successors.astype(index_dtype(n_states)), lower,
                                                                   upper, listed, widths, chunk, num_lower, n_states)
-        # blocks pay where a core's cache is small against the lists; an accelerator wants all rows at once
-        on_cpu = jax.default_backend() == "cpu"
         slots = c_succ.shape[0] * c_succ.shape[2] / num_rows  # per row and action
-        blocks = lambda actions: inner_blocks(chunk_row, num_rows, actions * slots) if on_cpu else (0, 0)
-        block_rows, block_chunks = blocks(c_succ.shape[1])
         return cls(chunk_succ=c_succ, chunk_upper=c_upper, chunk_row=chunk_row, lower_succ=l_succ,
                    lower_value=l_value, upper_rest=jnp.asarray(upper_rest), rows=jnp.asarray(rows, jnp.int32),
-                   labels=labels, width=int(widths.max()), list_rows=num_rows, block_rows=block_rows,
-                   block_chunks=block_chunks, strategy_blocks=blocks(1))
+                   labels=labels, width=int(widths.max()), list_rows=num_rows,
+                   **block_fields(chunk_row, num_rows, c_succ.shape[1], slots))
 
     # ------------------------------------------------------------------ the abstraction interface
 
@@ -345,6 +341,19 @@ def inner_blocks(chunk_row, num_rows: int, slots_per_row: float, budget: int = B
     start = np.concatenate([[0], np.cumsum(counts)])
     first = np.minimum(np.arange(0, num_rows, block_rows), num_rows - block_rows)
     return block_rows, int(np.max(start[first + block_rows] - start[first]))
+
+
+def block_fields(chunk_row, num_rows: int, num_actions: int, slots_per_row: float, budget: int = BLOCK_SLOTS,
+                 backend: str | None = None) -> dict:
+    """``block_rows``, ``block_chunks`` (every action) and ``strategy_blocks`` (one action per
+    row) of a class that solves its rows in blocks (``inner_blocks``; ``slots_per_row``: per row
+    and action). All 0 (all rows at once) off the CPU (``backend``, default JAX's), where an
+    accelerator wants all rows at once, or with ``budget=0``."""
+    if budget == 0 or (backend or jax.default_backend()) != "cpu":
+        return dict(block_rows=0, block_chunks=0, strategy_blocks=(0, 0))
+    block_rows, block_chunks = inner_blocks(chunk_row, num_rows, num_actions * slots_per_row, budget)
+    return dict(block_rows=block_rows, block_chunks=block_chunks,
+                strategy_blocks=inner_blocks(chunk_row, num_rows, slots_per_row, budget))
 
 
 def in_row_blocks(solve, by_row, by_chunk, fills, chunk_row, blocks):

@@ -49,7 +49,7 @@ from .box_bounds import region_bounds
 from .clusters import index_dtype
 from .grid_clusters import GridClusters
 from .imdp import value_ranking
-from .imdp_compact import chunk_lists, in_row_blocks, inner_blocks
+from .imdp_compact import block_fields, chunk_lists, in_row_blocks
 
 
 def block_layout(grid, block) -> tuple[np.ndarray, np.ndarray]:
@@ -158,16 +158,12 @@ class TwoLayerIMDP(AbstractionMixin):
                                                               met_count * size)
         # per row and action: the met blocks' capacities (T S, laid out in every backup) and the entries
         slots = met_count * size + c_slot.shape[0] * c_slot.shape[2] / widths.size
-        on_cpu = jax.default_backend() == "cpu"  # as CompactIMDP.from_lists
-        row_blocks = lambda actions: inner_blocks(row_j, int(widths.size), actions * slots) if on_cpu else (0, 0)
-        block_rows, block_chunks = row_blocks(int(blocks.shape[1]))
         return cls(blocks=blocks.astype(index_dtype(num_blocks + 2)), block_lower=block_lower,
                    block_upper=block_upper,
                    chunk_slot=c_slot, chunk_upper=c_upper, chunk_row=row_j, lower_slot=l_slot, lower_value=l_value,
                    cells_of=jnp.asarray(cells_of), upper_rest=rest, rows=jnp.asarray(clusters.rows, jnp.int32),
                    labels=jnp.asarray(grid.state_labels), block_shape=tuple(int(b) for b in block),
-                   list_rows=int(widths.size), block_rows=block_rows, block_chunks=block_chunks,
-                   strategy_blocks=row_blocks(1))
+                   list_rows=int(widths.size), **block_fields(row_j, int(widths.size), int(blocks.shape[1]), slots))
 
     @property
     def num_actions(self) -> int:
