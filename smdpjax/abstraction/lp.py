@@ -423,14 +423,15 @@ class ClusterLPs:
             tasks = plan
 
         tasks = list(tasks)
-        if self.threads > 1 and len(tasks) > 1 and np.unique(ids).size == ids.size:
-            share = lambda t: [run(task) for task in tasks[t::self.threads]]
-            parts = self._pool().map(share, range(self.threads))
-            statuses = [None] * len(tasks)
-            for t, part in enumerate(parts):
-                statuses[t::self.threads] = part
-        else:
-            statuses = [run(task) for task in tasks]
+        # Always on the pool's threads, never on the caller's: XLA runs host callbacks on its own
+        # threads, whose Python thread state (and the thread-local HiGHS instance with it) may
+        # not outlive one call; solving there crashed the 2-D unicycle's synthesis (row 3) with
+        # threads=1.
+        share = 1 if np.unique(ids).size != ids.size else max(1, min(self.threads, len(tasks)))
+        parts = self._pool().map(lambda t: [run(task) for task in tasks[t::share]], range(share))
+        statuses = [None] * len(tasks)
+        for t, part in enumerate(parts):
+            statuses[t::share] = part
         self.stats.update(statuses)
         self._report([ids[t] if isinstance(t, (int, np.integer)) else ids[t[0]] for t in tasks], statuses)
         self.stats["solve_seconds"] += time.perf_counter() - start

@@ -732,3 +732,29 @@ def test_grouped_order_puts_equal_rows_of_a_group_next_to_each_other(weights):
         if key in seen:  # adjacent to its equal, after it in the original order
             assert seen[key][0] == pos - 1 and seen[key][1] < i
         seen[key] = (pos, int(i))
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_lps_are_solved_on_the_pool_threads_only(unicycle_12, threads, monkeypatch):
+    """XLA runs host callbacks on its own threads, whose Python thread state (and a thread-local
+    HiGHS instance with it) may not outlive one call: solving there crashed row 3 of Table 1
+    with ``threads=1`` (segmentation fault). Every solve runs on the LP pool's threads, and a
+    synthesis gives the same bounds with one thread as with two."""
+    import threading
+
+    pytest.importorskip("highspy")
+    grid, clusters, _ = unicycle_12
+    mimdp = MIMDP.from_clusters(grid, clusters, lp_backend="highs", threads=threads)
+    solve, where = mimdp.lps._solve_highs, set()
+
+    def recorded(*args):
+        where.add(threading.current_thread().name)
+        return solve(*args)
+
+    monkeypatch.setattr(mimdp.lps, "_solve_highs", recorded)
+    solution = sj.synthesize(mimdp, tol=1e-8)
+    assert where and all(name.startswith("mimdp-lp") for name in where)
+    assert len(where) <= threads
+    reference = sj.synthesize(MIMDP.from_clusters(grid, clusters, lp_backend="highs", threads=2), tol=1e-8)
+    np.testing.assert_allclose(np.asarray(solution.lower), np.asarray(reference.lower), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(solution.upper), np.asarray(reference.upper), rtol=0, atol=1e-9)
