@@ -650,8 +650,11 @@ def _box_bounds(start, length, sink, prob, rest, cells):
     b0, lb, sb = start[..., :, None, :], length[..., :, None, :], sink[..., :, None]
     empty_a = jnp.any(la == 0, axis=-1)
     empty_b = jnp.any(lb == 0, axis=-1)
-    d_ab = jnp.mod(a0 - b0, n_cells)
-    d_ba = jnp.mod(b0 - a0, n_cells)
+    # starts lie in [0, cells), so a0 - b0 lies in (-cells, cells): one conditional wrap instead
+    # of an integer modulo (half the time of this O(C^2 n) test on the 4-room temperature row)
+    diff = a0 - b0
+    d_ab = jnp.where(diff < 0, diff + n_cells, diff)
+    d_ba = jnp.where(diff > 0, n_cells - diff, -diff)
     inside_dim = (lb >= n_cells) | ((la <= lb) & (d_ab + la <= lb))
     meet_dim = (la >= n_cells) | (lb >= n_cells) | (d_ab < lb) | (d_ba < la)
     grid_inside = empty_a | (~empty_b & jnp.all(inside_dim, axis=-1))
