@@ -30,7 +30,9 @@ objective. Backends:
   keeps its last optimal basis (one per adversary direction; its model is passed again as arrays
   at every call, see ``_highs_model``), and every call warm starts from that basis, which is
   nearly optimal again when the values change little between iterations. One ``Highs`` instance per thread solves the LPs one after the other (a ``Highs``
-  object per LP would hold ~0.5 MB each).
+  object per LP would hold ~0.5 MB each). Before calling HiGHS, each LP's last optimal basis is
+  re-priced at the new costs (``lp_reprice``, all LPs of a call at once in NumPy): where the
+  re-priced duals are certified optimal (duality gap at most ``reprice_gap``), no solver is called.
 
 Both release the GIL while solving; ``threads > 1`` solves LPs concurrently.
 """
@@ -42,6 +44,8 @@ import threading
 import time
 
 import numpy as np
+
+from .lp_reprice import BasisRecord, ranges, reprice
 
 # A cluster constraint side counts as implied by the interval bounds within this slack.
 _REDUNDANT_SLACK = 1e-12
@@ -57,6 +61,11 @@ _LP_LOCK_STRIPES = 64
 # ``Highs.passModel`` codes: row-wise matrix (``MatrixFormat.kRowwise``), ``ObjSense.kMinimize``
 _HIGHS_ROWWISE, _HIGHS_MINIMIZE = 2, 1
 BACKENDS = ("clarabel", "highs")
+# Re-priced duals are used where their certified duality gap is at most this (``lp_reprice``).
+REPRICE_GAP = 1e-10
+# LPs re-priced per task: about this many chunks per thread, each within these bounds.
+_REPRICE_CHUNKS_PER_THREAD = 8
+_REPRICE_CHUNK = (32, 512)
 # Solver statuses of an optimal (or, for Clarabel, an optimal up to its reduced tolerances) solve
 _OPTIMAL = frozenset({"Solved", "AlmostSolved", "Optimal"})
 
@@ -82,6 +91,9 @@ class ClusterLPs:
             variables); the other LPs are set up again at every call (about +25% time).
         names: optional ``(P, 2)`` (cell, action) of each LP, for the warning about LPs that the
             solver did not solve (see `failures`).
+        reprice: (HiGHS) re-price each LP's last optimal basis before calling the solver
+            (``lp_reprice``); ``stats["repriced"]`` counts the LPs served so.
+        reprice_gap: largest certified duality gap of re-priced duals that are used.
 
     An LP that ends without an optimum (infeasible, numerical failure, iteration limit) keeps
     the multipliers the solver returned, clipped at 0: the bound they certify is still sound
@@ -94,7 +106,7 @@ class ClusterLPs:
     def __init__(self, succ, lower, upper, rest, slots, cluster_lower, cluster_upper, num_states, *,
                  backend: str = "clarabel", block_size: int = 1, max_buckets: int = 16,
                  settings: dict | None = None, threads: int = 1, cache_size: int = 4,
-                 max_cached_solvers: int = 2048, names=None):
+                 max_cached_solvers: int = 2048, names=None, reprice: bool = True, reprice_gap: float = REPRICE_GAP):
         if backend not in BACKENDS:
             raise ValueError(f"unknown LP backend {backend!r}; expected one of {BACKENDS}")
         _import(backend)  # fail early if it is missing
@@ -120,6 +132,11 @@ class ClusterLPs:
         self.max_cached_solvers = int(max_cached_solvers)
         self._local = threading.local()
         self._lock = threading.Lock()
+        # the last optimal solve of each LP, per direction, for re-pricing (HiGHS only)
+        self.reprice = bool(reprice) and backend == "highs"
+        self.reprice_gap = float(reprice_gap)
+        self._records = {}
+        self._record_locks = (threading.Lock(), threading.Lock())
         # XLA may run host callbacks concurrently (a step's lower and upper backups, a mesh's
         # shards), so two calls can reach the same LP at once: its HiGHS basis (read, then
         # replaced) and its Clarabel solver are used under a lock
@@ -309,11 +326,46 @@ class ClusterLPs:
                 h.setBasis(basis)
             h.run()
             self._solvers[key] = h.getBasis()
-        dual = np.asarray(h.getSolution().row_dual)[1:]
+            solution = h.getSolution()
+            status = h.modelStatusToString(h.getModelStatus())
+            row_dual = np.asarray(solution.row_dual)
+            if self.reprice:
+                record, lock = self._record(direction), self._record_locks[direction]
+                if status in _OPTIMAL:
+                    record.record(self._lps, p, solution.col_value, solution.col_dual, row_dual, h.getBasis, lock)
+                else:
+                    with lock:
+                        record.forget(p)
+        dual = row_dual[1:]
         cluster = self._lps[p]["cluster"]
         out[2 * cluster] = np.maximum(dual, 0.0)
         out[2 * cluster + 1] = np.maximum(-dual, 0.0)
-        return h.modelStatusToString(h.getModelStatus())
+        return status
+
+    def _record(self, direction) -> BasisRecord:
+        record = self._records.get(direction)
+        if record is None:
+            with self._lock:
+                record = self._records.setdefault(
+                    direction, BasisRecord(self._lps.caps.size, self._lps.cluster.size, self.num_lps))
+        return record
+
+    def _repriced(self, ids, costs, direction, flat):
+        """Serve the LPs of ``ids`` whose last optimal basis, re-priced at ``costs``, is certified
+        optimal (``lp_reprice``): their multipliers go to ``flat``. Returns which were served."""
+        record = self._records.get(direction)
+        if record is None:
+            return np.zeros(ids.size, bool)
+        table = self._lps
+        gv, vq = ranges(table.var_start[ids], table.var_start[ids + 1])
+        var_cost = costs[vq, table.cost_src[gv]]
+        accepted, rows, owner, duals = reprice(table, ids, var_cost, record, gap=self.reprice_gap,
+                                               lock=self._record_locks[direction])
+        served = accepted[owner]
+        at, cluster, dual = owner[served], table.cluster[rows[served]].astype(np.int64), duals[served]
+        flat[at, 2 * cluster] = np.maximum(dual, 0.0)
+        flat[at, 2 * cluster + 1] = np.maximum(-dual, 0.0)
+        return accepted
 
     def _cached(self, key, make):
         value = self._solvers.get(key)
@@ -406,20 +458,32 @@ class ClusterLPs:
         flat = lam.reshape(ids.size, -1)
         start = time.perf_counter()
 
+        # each task returns [(position in ids of the (first) LP it solved, solver status), ...]
         if self.backend == "highs":
-            def run(i):
+            def solve(i):
                 return self._solve_highs(ids[i], direction, costs[i, self._lps[ids[i]]["cost_src"]], flat[i])
-            tasks = range(ids.size)
+
+            if self.reprice:  # a chunk of LPs per task: re-priced, the rest solved (chunks run concurrently)
+                def run(part):
+                    served = self._repriced(ids[part], costs[part], direction, flat[part])
+                    with self._lock:
+                        self.stats["repriced"] += int(served.sum())
+                    return [(i, solve(i)) for i in range(part.start, part.stop) if not served[i - part.start]]
+                chunk = int(np.clip(-(-ids.size // (_REPRICE_CHUNKS_PER_THREAD * self.threads)), *_REPRICE_CHUNK))
+                tasks = [slice(lo, min(lo + chunk, ids.size)) for lo in range(0, ids.size, chunk)]
+            else:
+                run = lambda i: [(i, solve(i))]
+                tasks = range(ids.size)
         elif self.block_size == 1:
             def run(i):
-                return self._solve_clarabel(self._clarabel_single(ids[i]), costs[i:i + 1], flat[i:i + 1])
+                return [(i, self._solve_clarabel(self._clarabel_single(ids[i]), costs[i:i + 1], flat[i:i + 1]))]
             tasks = range(ids.size)
         else:
             plan = self._plan(ids)
 
             def run(task):
                 lo, block = task
-                return self._solve_clarabel(block, costs[lo:lo + block["count"]], flat[lo:lo + block["count"]])
+                return [(lo, self._solve_clarabel(block, costs[lo:lo + block["count"]], flat[lo:lo + block["count"]]))]
             tasks = plan
 
         tasks = list(tasks)
@@ -428,12 +492,11 @@ class ClusterLPs:
         # not outlive one call; solving there crashed the 2-D unicycle's synthesis (row 3) with
         # threads=1.
         share = 1 if np.unique(ids).size != ids.size else max(1, min(self.threads, len(tasks)))
-        parts = self._pool().map(lambda t: [run(task) for task in tasks[t::share]], range(share))
-        statuses = [None] * len(tasks)
-        for t, part in enumerate(parts):
-            statuses[t::share] = part
+        parts = self._pool().map(lambda t: [r for task in tasks[t::share] for r in run(task)], range(share))
+        solved = sorted(r for part in parts for r in part)
+        statuses = [status for _, status in solved]
         self.stats.update(statuses)
-        self._report([ids[t] if isinstance(t, (int, np.integer)) else ids[t[0]] for t in tasks], statuses)
+        self._report([ids[i] for i, _ in solved], statuses)
         self.stats["solve_seconds"] += time.perf_counter() - start
         self.stats["calls"] += 1
         return lam.reshape(*shape, self.num_clusters, 2)
@@ -471,6 +534,7 @@ class ClusterLPs:
             self._solvers.clear()
             self._cached_solvers = 0
             self._local = threading.local()
+            self._records.clear()
 
     def _pool(self):
         with self._lock:

@@ -46,23 +46,9 @@ def per_lp_reference(succ, lower, upper, rest, slots, clo, cup, num_states, max_
     return lps
 
 
-def random_lps(seed, rest):
-    rng = np.random.default_rng(seed)
-    p, k, j, l, n = 23, 9, 5, 4, 40
-    succ = np.sort(rng.choice(n, size=(p, k)), axis=1)
-    succ = np.where(rng.random((p, k)) < 0.2, n + 1, succ)  # padding anywhere
-    succ = np.sort(np.where(np.diff(succ, prepend=-1, axis=1) == 0, n + 1, succ), axis=1)  # distinct ids
-    upper = np.where(succ < n, rng.uniform(0.05, 0.6, (p, k)), 0.0) + rest
-    lower = np.where((succ < n) & (rng.random((p, k)) < 0.3), rng.uniform(0, 0.04, (p, k)), 0.0)
-    upper = np.where(rng.random((p, k)) < 0.1, lower, upper)  # some fixed entries (no variable)
-    slots = np.sort(np.where(rng.random((p, j, l)) < 0.8, rng.integers(0, k, (p, j, l)), k), axis=-1)
-    clo, cup = rng.uniform(0, 0.3, (p, j)), rng.uniform(0.2, 1.0, (p, j))
-    return succ, lower, upper, rest, slots, clo, cup, n
-
-
 @pytest.mark.parametrize("seed", [0, 1])
 @pytest.mark.parametrize("rest", [0.0, 0.004, 0.2])
-def test_lp_table_equals_the_per_lp_construction(seed, rest):
+def test_lp_table_equals_the_per_lp_construction(seed, rest, random_lps):
     args = random_lps(seed, rest)
     lps = ClusterLPs(*args)
     reference = per_lp_reference(*args)

@@ -758,3 +758,18 @@ def test_lps_are_solved_on_the_pool_threads_only(unicycle_12, threads, monkeypat
     reference = sj.synthesize(MIMDP.from_clusters(grid, clusters, lp_backend="highs", threads=2), tol=1e-8)
     np.testing.assert_allclose(np.asarray(solution.lower), np.asarray(reference.lower), rtol=0, atol=1e-9)
     np.testing.assert_allclose(np.asarray(solution.upper), np.asarray(reference.upper), rtol=0, atol=1e-9)
+
+
+def test_repriced_bases_give_the_synthesis_of_an_lp_solve_each_time(unicycle_12):
+    """Re-pricing the LPs' last optimal bases (``lp_reprice``) serves some LPs without HiGHS and
+    gives the bounds and strategy of solving every LP, to the solvers' tolerance."""
+    pytest.importorskip("highspy")
+    grid, clusters, _ = unicycle_12
+    repriced = MIMDP.from_clusters(grid, clusters, lp_backend="highs")
+    solved = MIMDP.from_clusters(grid, clusters, lp_backend="highs", reprice_bases=False)
+    a, b = sj.synthesize(repriced, tol=1e-8), sj.synthesize(solved, tol=1e-8)
+    assert repriced.lps.stats["repriced"] > 0 and solved.lps.stats["repriced"] == 0
+    assert repriced.lps.stats["Optimal"] < solved.lps.stats["Optimal"]
+    for field in ("lower", "upper", "lower_optimal"):
+        np.testing.assert_allclose(np.asarray(getattr(a, field)), np.asarray(getattr(b, field)), rtol=0, atol=1e-8)
+    np.testing.assert_array_equal(np.asarray(a.policy), np.asarray(b.policy))

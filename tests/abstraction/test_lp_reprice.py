@@ -1,0 +1,153 @@
+"""Re-pricing the MI-MDP LPs' last optimal bases (``lp_reprice``) against HiGHS solves."""
+
+import numpy as np
+import pytest
+
+from smdpjax.abstraction.lp import ClusterLPs
+from smdpjax.abstraction.lp_reprice import BasisRecord, ranges, reprice
+
+pytest.importorskip("highspy")
+# some of the random LPs are infeasible: they are reported, not recorded, and never re-priced
+pytestmark = pytest.mark.filterwarnings("ignore:MI-MDP.*did not reach an optimum:RuntimeWarning")
+
+
+def surrogate_dual(lps, p, cost, lam):
+    """The surrogate LP's dual function of LP ``p`` at multipliers ``lam (J, 2)``, its equality
+    multiplier chosen optimally (a 1-D concave maximization, by checking every breakpoint)."""
+    lp = lps._lps[p]
+    mu = np.zeros(lp["cluster"].size)
+    offset = 0.0
+    for i, (c, lo, hi) in enumerate(zip(lp["cluster"], lp["lo"], lp["hi"])):
+        plus, minus = lam[c]
+        mu[i] = plus - minus
+        offset += (plus * lo if plus > 0 else 0.0) - (minus * hi if minus > 0 else 0.0)
+    shifted = cost.copy()
+    for i in range(mu.size):
+        shifted[lp["var"][lp["ptr"][i]:lp["ptr"][i + 1]]] -= mu[i]
+    dual = lambda nu: nu * lp["free_mass"] + np.sum(lp["caps"] * np.minimum(shifted - nu, 0.0))
+    return offset + max(dual(nu) for nu in shifted)
+
+
+@pytest.fixture
+def lps_and_costs(random_lps):
+    """``make(seed, rest)``: HiGHS ``ClusterLPs`` of ``random_lps``, costs ``(N+1,)`` and a generator."""
+    def make(seed, rest=0.0):
+        succ, lower, upper, rest, slots, clo, cup, n = random_lps(seed, rest)
+        k = succ.shape[1]  # HiGHS refuses a row that names a variable twice: distinct members
+        slots = np.sort(np.where(np.diff(slots, prepend=-1, axis=-1) == 0, k, slots), axis=-1)
+        lps = ClusterLPs(succ, lower, upper, rest, slots, clo, cup, n, backend="highs")
+        rng = np.random.default_rng(seed + 100)
+        return lps, rng.uniform(0, 1, lps.num_states), rng
+    return make
+
+
+def test_ranges_and_owners():
+    index, owner = ranges(np.array([3, 0, 7]), np.array([5, 0, 10]))
+    np.testing.assert_array_equal(index, [3, 4, 7, 8, 9])
+    np.testing.assert_array_equal(owner, [0, 0, 2, 2, 2])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_at_the_same_costs_every_basis_reprices_to_the_solvers_duals(seed, lps_and_costs):
+    """The last solve's basis is optimal at its own costs: every LP is accepted, with HiGHS's duals."""
+    lps, w, _ = lps_and_costs(seed, rest=0.01)
+    ids = np.arange(lps.num_lps)
+    solved = lps.multipliers(w, ids).reshape(ids.size, -1)  # no records yet: every LP solved
+    optimal = lps._record(0).known  # only optimal solves are recorded
+    assert optimal.sum() == ids.size - lps.stats["failed"] >= 15 and lps.stats["repriced"] == 0
+    repriced = np.zeros_like(solved)
+    served = lps._repriced(ids, lps.cost_table(w, ids), 0, repriced)
+    np.testing.assert_array_equal(served, optimal & (lps.num_vars > 0))
+    np.testing.assert_allclose(repriced[served], solved[served], rtol=0, atol=1e-12)
+    again = lps.multipliers(w, ids).reshape(ids.size, -1)  # the same through multipliers
+    assert lps.stats["repriced"] == served.sum()
+    np.testing.assert_allclose(again[served], solved[served], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+@pytest.mark.parametrize("step", [1e-4, 1e-2, 1.0])
+def test_accepted_duals_certify_the_fresh_solves_value(seed, step, lps_and_costs):
+    """After the costs move (a little, or to unrelated ones), an accepted LP's multipliers certify
+    what a fresh HiGHS solve's certify, within the gap; small steps keep many bases optimal,
+    unrelated costs few."""
+    lps, w, rng = lps_and_costs(seed, rest=0.01)
+    ids = np.arange(lps.num_lps)
+    lps.multipliers(w, ids)  # records every basis
+    accepted_total = 0
+    for _ in range(3):
+        w = np.clip(w + step * rng.uniform(-1, 1, w.size), 0, 1)
+        costs = lps.cost_table(w, ids)
+        out = np.zeros((ids.size, 2 * lps.num_clusters))
+        served = lps._repriced(ids, costs, 0, out)
+        lps.reprice = False
+        fresh = lps.multipliers(w, ids).reshape(ids.size, -1)
+        lps.reprice = True
+        for p in np.flatnonzero(served):
+            cost = costs[p, lps._lps[p]["cost_src"]]
+            ours = surrogate_dual(lps, p, cost, out[p].reshape(-1, 2))
+            theirs = surrogate_dual(lps, p, cost, fresh[p].reshape(-1, 2))
+            assert ours >= theirs - 1e-9
+        accepted_total += served.sum()
+        lps.multipliers(w, ids)  # solve the rest, recording their bases
+    if step <= 1e-4:
+        assert accepted_total > ids.size  # most bases stay optimal under small steps
+
+
+def test_a_stale_basis_is_rejected_not_trusted(lps_and_costs):
+    """Costs reversed: the recorded bases are not optimal any more. Each is rejected by its
+    certificate, or accepted only where its duals are still optimal."""
+    lps, w, _ = lps_and_costs(5)
+    ids = np.arange(lps.num_lps)
+    lps.multipliers(w, ids)
+    w2 = 1.0 - w
+    costs = lps.cost_table(w2, ids)
+    out = np.zeros((ids.size, 2 * lps.num_clusters))
+    served = lps._repriced(ids, costs, 0, out)
+    lps.reprice = False
+    fresh = lps.multipliers(w2, ids).reshape(ids.size, -1)
+    rejected = 0
+    for p in ids:
+        cost = costs[p, lps._lps[p]["cost_src"]]
+        best = surrogate_dual(lps, p, cost, fresh[p].reshape(-1, 2))
+        if served[p]:
+            assert surrogate_dual(lps, p, cost, out[p].reshape(-1, 2)) >= best - 1e-9
+        else:
+            rejected += 1
+    assert rejected > 0
+
+
+def test_reprice_handles_singular_and_oversized_systems(lps_and_costs):
+    """A record whose system is singular, or larger than ``max_size``, is not accepted (the LP
+    goes to the solver), and the other LPs of the call are unaffected."""
+    lps, w, _ = lps_and_costs(2)
+    ids = np.arange(lps.num_lps)
+    lps.multipliers(w, ids)
+    table, record = lps._lps, lps._record(0)
+    gv, vq = ranges(table.var_start[ids], table.var_start[ids + 1])
+    var_cost = lps.cost_table(w, ids)[vq, table.cost_src[gv]]
+    accepted, *_ = reprice(table, ids, var_cost, record, gap=1e-10)
+    size = np.bincount(vq[record.basic[gv]], minlength=ids.size)
+    assert accepted[size > 0].all()
+    small, *_ = reprice(table, ids, var_cost, record, gap=1e-10, max_size=1)
+    np.testing.assert_array_equal(small, accepted & (size <= 1))
+
+    # singular: the equality and one row active, two basic variables outside that row (the
+    # same column (1, 0) twice)
+    broken = BasisRecord(table.caps.size, table.cluster.size, lps.num_lps)
+    for name in ("x", "basic", "active", "eq_active", "known"):
+        setattr(broken, name, getattr(record, name).copy())
+    for p in np.flatnonzero(np.diff(table.row_start) > 0):
+        v0, v1, r0, r1 = table.var_start[p], table.var_start[p + 1], table.row_start[p], table.row_start[p + 1]
+        outside = np.flatnonzero(~np.isin(np.arange(v1 - v0), table.var[table.member_start[r0]:table.member_start[r0 + 1]]))
+        if outside.size >= 2:
+            break
+    else:
+        pytest.fail("no LP with two variables outside its first row")
+    broken.active[r0:r1] = False
+    broken.active[r0] = True
+    broken.eq_active[p] = True
+    broken.basic[v0:v1] = False
+    broken.basic[v0 + outside[:2]] = True
+    again, *_ = reprice(table, ids, var_cost, broken, gap=1e-10)
+    assert not again[p]
+    np.testing.assert_array_equal(np.delete(again, p), np.delete(accepted, p))
