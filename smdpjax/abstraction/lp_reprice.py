@@ -69,14 +69,15 @@ class BasisRecord:
         x = np.asarray(x, np.float64)
         basic = np.asarray(col_dual, np.float64) == 0.0
         nonbasic_rows = np.asarray(row_dual) != 0.0
-        if basic.sum() > SIZES[-1]:  # too large to re-price: not worth recording
-            with lock or contextlib.nullcontext():
-                self.known[p] = False
-            return
-        if basic.sum() != nonbasic_rows.sum():
+        # the basis has as many basic variables as nonbasic rows, at least the rows of nonzero dual
+        if nonbasic_rows.sum() <= SIZES[-1] and basic.sum() != nonbasic_rows.sum():
             status = basis()
             basic = np.fromiter(map(int, status.col_status), np.int8, v1 - v0) == _BASIC
             nonbasic_rows = np.fromiter(map(int, status.row_status), np.int8, r1 - r0 + 1) != _BASIC
+        if nonbasic_rows.sum() > SIZES[-1]:  # too large to re-price: not worth recording
+            with lock or contextlib.nullcontext():
+                self.known[p] = False
+            return
         with lock or contextlib.nullcontext():
             self.x[v0:v1] = x
             self.basic[v0:v1] = basic

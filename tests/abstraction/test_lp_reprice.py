@@ -151,3 +151,48 @@ def test_reprice_handles_singular_and_oversized_systems(lps_and_costs):
     again, *_ = reprice(table, ids, var_cost, broken, gap=1e-10)
     assert not again[p]
     np.testing.assert_array_equal(np.delete(again, p), np.delete(accepted, p))
+
+
+def test_degenerate_solves_record_the_solvers_basis(lps_and_costs, monkeypatch):
+    """Tied costs make the optimum degenerate: some nonbasic variables have reduced cost 0, so the
+    duals do not tell the basis and the record reads HiGHS's statuses. Those bases re-price to
+    HiGHS's duals all the same."""
+    from smdpjax.abstraction import lp_reprice
+
+    lps, w, _ = lps_and_costs(4, rest=0.01)
+    w = np.round(w * 3) / 3  # four distinct values: many ties
+    ids = np.arange(lps.num_lps)
+    read = []
+    record = lp_reprice.BasisRecord.record
+
+    def counted(self, table, p, x, col_dual, row_dual, basis, lock=None):
+        return record(self, table, p, x, col_dual, row_dual, lambda: read.append(p) or basis(), lock)
+
+    monkeypatch.setattr(lp_reprice.BasisRecord, "record", counted)
+    solved = lps.multipliers(w, ids).reshape(ids.size, -1)
+    assert read  # some solves were degenerate
+    out = np.zeros_like(solved)
+    served = lps._repriced(ids, lps.cost_table(w, ids), 0, out)
+    assert served[read].all()
+    np.testing.assert_allclose(out[served], solved[served], rtol=0, atol=1e-12)
+
+
+def test_bases_too_large_to_reprice_are_not_recorded(lps_and_costs, monkeypatch):
+    """A basis of more unknowns than the largest system size is not recorded (its LP is solved
+    every time); the others are, as without the limit."""
+    from smdpjax.abstraction import lp_reprice
+
+    def recorded():
+        lps, w, _ = lps_and_costs(1, rest=0.01)
+        ids = np.arange(lps.num_lps)
+        lps.multipliers(w, ids)
+        table, record = lps._lps, lps._record(0)
+        unknowns = np.array([record.active[table.row_start[p]:table.row_start[p + 1]].sum() + record.eq_active[p]
+                             for p in ids])
+        return record.known.copy(), unknowns
+
+    known, unknowns = recorded()
+    monkeypatch.setattr(lp_reprice, "SIZES", (2,))
+    limited, _ = recorded()
+    np.testing.assert_array_equal(limited, known & (unknowns <= 2))
+    assert limited.any() and (known & ~limited).any()
