@@ -354,17 +354,20 @@ class ClusterLPs:
         """Serve the LPs of ``ids`` whose last optimal basis, re-priced at ``costs``, is certified
         optimal (``lp_reprice``): their multipliers go to ``flat``. Returns which were served."""
         record = self._records.get(direction)
-        if record is None:
-            return np.zeros(ids.size, bool)
+        accepted = np.zeros(ids.size, bool)
+        have = np.flatnonzero(record.known[ids]) if record is not None else np.zeros(0, np.int64)
+        if have.size == 0:  # e.g. every basis too large to record
+            return accepted
         table = self._lps
-        gv, vq = ranges(table.var_start[ids], table.var_start[ids + 1])
-        var_cost = costs[vq, table.cost_src[gv]]
-        accepted, rows, owner, duals = reprice(table, ids, var_cost, record, gap=self.reprice_gap,
-                                               lock=self._record_locks[direction])
-        served = accepted[owner]
-        at, cluster, dual = owner[served], table.cluster[rows[served]].astype(np.int64), duals[served]
+        gv, vq = ranges(table.var_start[ids[have]], table.var_start[ids[have] + 1])
+        var_cost = costs[have[vq], table.cost_src[gv]]
+        served_lps, rows, owner, duals = reprice(table, ids[have], var_cost, record, gap=self.reprice_gap,
+                                                 lock=self._record_locks[direction])
+        served = served_lps[owner]
+        at, cluster, dual = have[owner[served]], table.cluster[rows[served]].astype(np.int64), duals[served]
         flat[at, 2 * cluster] = np.maximum(dual, 0.0)
         flat[at, 2 * cluster + 1] = np.maximum(-dual, 0.0)
+        accepted[have] = served_lps
         return accepted
 
     def _cached(self, key, make):

@@ -66,11 +66,16 @@ class BasisRecord:
         the record is written."""
         v0, v1 = table.var_start[p], table.var_start[p + 1]
         r0, r1 = table.row_start[p], table.row_start[p + 1]
+        nonbasic_rows = np.asarray(row_dual) != 0.0
+        # the basis has as many basic variables as nonbasic rows, at least the rows of nonzero
+        # dual: too many of those, and nothing else is read (most solves of the 2-D unicycle)
+        if nonbasic_rows.sum() > SIZES[-1]:
+            with lock or contextlib.nullcontext():
+                self.known[p] = False
+            return
         x = np.asarray(x, np.float64)
         basic = np.asarray(col_dual, np.float64) == 0.0
-        nonbasic_rows = np.asarray(row_dual) != 0.0
-        # the basis has as many basic variables as nonbasic rows, at least the rows of nonzero dual
-        if nonbasic_rows.sum() <= SIZES[-1] and basic.sum() != nonbasic_rows.sum():
+        if basic.sum() != nonbasic_rows.sum():
             status = basis()
             basic = np.fromiter(map(int, status.col_status), np.int8, v1 - v0) == _BASIC
             nonbasic_rows = np.fromiter(map(int, status.row_status), np.int8, r1 - r0 + 1) != _BASIC
