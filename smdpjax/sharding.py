@@ -160,6 +160,8 @@ def _whole_rows(abstraction):
                if dataclasses.is_dataclass(getattr(abstraction, f.name))}
     if hasattr(abstraction, "strategy_blocks"):
         changes.update(block_rows=0, block_chunks=0, strategy_blocks=(0, 0))
+        if hasattr(abstraction, "block_pairs"):
+            changes.update(block_pairs=(0, 0))
     return dataclasses.replace(abstraction, **changes) if changes else abstraction
 
 

@@ -120,14 +120,59 @@ def test_default_block_and_abstract_option():
         sj.abstract(system, grid, noise, "2imdp", block=0)
 
 
-@pytest.mark.parametrize("size", [1, 7, 81, 200])
+@pytest.mark.parametrize("size", [1, 7, 16, 17, 81, 128, 200])
 def test_prefix_sums_match_cumsum(size):
-    from smdpjax.abstraction.twolayer import _MATMUL_PREFIX_MAX, _prefix_sums
+    from smdpjax.abstraction.twolayer import _MATMUL_PREFIX_MAX, _ONE_LEVEL_MAX, _prefix_sums
 
     x = np.random.default_rng(size).uniform(0, 1, (3, 4, size))
     got = np.asarray(_prefix_sums(jnp.asarray(x)))
     np.testing.assert_allclose(got, np.cumsum(x, -1), rtol=1e-15, atol=size * 1e-16)
-    assert (size > _MATMUL_PREFIX_MAX) == (size == 200)  # both paths are exercised
+    assert (size > _MATMUL_PREFIX_MAX) == (size == 200)  # every path is exercised
+    assert (size <= _ONE_LEVEL_MAX) == (size in (1, 7, 16))
+
+
+def test_count_table_counts_each_blocks_cells_below_every_rank():
+    from smdpjax.abstraction.twolayer import block_ranking
+
+    grid = sj.StateGrid([0, 0], [1, 1], [7, 6])
+    _, cells_of = block_layout(grid, (3, 2))  # partial blocks at the edge, padded
+    w = jnp.asarray(np.random.default_rng(0).choice([0.0, 0.25, 1.0], grid.num_states))  # ties
+    ranking = block_ranking(w, jnp.asarray(cells_of), count_table=True)
+    rank = np.asarray(ranking["rank"])
+    cells = np.concatenate([cells_of, np.full((1, cells_of.shape[1]), grid.num_states)])
+    ranks = np.where(cells < grid.num_states, rank[np.minimum(cells, grid.num_states - 1)], grid.num_states)
+    expect = (ranks[None, :, :] < np.arange(grid.num_states + 1)[:, None, None]).sum(-1)
+    np.testing.assert_array_equal(np.asarray(ranking["count"]), expect)
+
+
+def test_solver_same_with_count_table_or_binary_search(monkeypatch):
+    from smdpjax.abstraction import twolayer
+
+    system, grid, noise = PROBLEMS["uniform"]
+    tl = TwoLayerIMDP.from_clusters(grid, compute_grid_clusters(system, grid, noise), block=(3, 2))
+    v = jnp.asarray(np.random.default_rng(4).uniform(0, 1, grid.num_states)).at[-1].set(0.0)
+    wants = lambda: twolayer.wants_count_table(tl.num_states, tl.cells_of.shape[0], tl.blocks.size)
+    monkeypatch.setattr(twolayer, "COUNT_TABLE_READS", 0)
+    assert wants()
+    with_table = np.asarray(tl.q_values(v, "min"))
+    monkeypatch.setattr(twolayer, "COUNT_TABLE_MAX", 0)
+    assert not wants()
+    np.testing.assert_array_equal(np.asarray(tl.q_values(v, "min")), with_table)
+
+
+@pytest.mark.parametrize("block_rows", [0, 1, 4, 5, 9])
+def test_pair_counts_cover_every_block_of_rows(block_rows):
+    """``pair_counts`` is the most met pairs any block of rows of ``in_row_blocks`` holds (the
+    last block overlapping the one before it): fewer would put two pairs on one row."""
+    from smdpjax.abstraction.imdp_compact import in_row_blocks
+    from smdpjax.abstraction.twolayer import pair_counts
+
+    met = np.random.default_rng(block_rows).integers(0, 7, 23)
+    # every row gets its block's total; every block gives the result at least one row
+    block_total = lambda by_row, by_chunk, rows: jnp.broadcast_to(by_row[0].sum(), by_row[0].shape)
+    totals = in_row_blocks(block_total, (jnp.asarray(met),), (jnp.zeros(23),), (0.0,), jnp.arange(23),
+                           (block_rows, 1))
+    assert pair_counts(met, block_rows) == int(totals.max())
 
 
 def test_solver_same_with_either_prefix_sum(monkeypatch):
@@ -156,6 +201,7 @@ def test_sparse_fine_layer_equals_dense_solver(name, block, chunk):
         assert tl.chunk == chunk and tl.num_chunks > tl.num_rows
     dense = (tl.blocks, tl.block_lower, tl.block_upper, tl.lower, tl.upper)
     assert tl.nbytes < sum(np.asarray(a).nbytes for a in dense)
+    assert tl.block_rows == 0 and tl.block_pairs[0] < tl.blocks.size  # capacities laid out for the met pairs only
     rng = np.random.default_rng(5)
     strategy = jnp.asarray(rng.integers(0, tl.num_actions, tl.num_rows), jnp.int32)
     q = jax.jit(lambda a, v, adversary, s: a.q_values(v, adversary, s), static_argnums=2)
