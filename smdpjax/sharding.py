@@ -56,7 +56,8 @@ __all__ = ["row_mesh", "shard_abstraction", "unshard_abstraction", "row_sharding
 
 # Fields that are global even if their leading size happens to equal the row count R.
 GLOBAL_FIELDS = frozenset({"labels", "cells_of", "prob", "prob_rest", "upper_rest",
-                           "chunk_succ", "chunk_slot", "chunk_upper", "chunk_row"})  # chunked lists: replicated
+                           "chunk_succ", "chunk_slot", "chunk_upper", "chunk_row",  # chunked lists: replicated
+                           "table"})  # the values of a coded array (``abstraction.coded``)
 
 _TRACER = getattr(jax.core, "Tracer", ())
 
@@ -110,8 +111,8 @@ def shard_abstraction(abstraction, mesh: Mesh | None = None):
     """The same abstraction with its rows split across the devices of ``mesh``.
 
     Every leaf whose leading size is the row count ``R`` (except the fields in
-    ``GLOBAL_FIELDS``) is padded to a multiple of the device count by repeating its last row and
-    placed with ``row_sharding(mesh)``; every other leaf is replicated. Works for any abstraction
+    ``GLOBAL_FIELDS`` and the leaves inside them) is padded to a multiple of the device count by
+    repeating its last row and placed with ``row_sharding(mesh)``; every other leaf is replicated. Works for any abstraction
     PyTree with a ``rows`` leaf (nested ones, such as the MI-MDP's ``relaxation``, included).
 
     Args:
@@ -134,10 +135,10 @@ def shard_abstraction(abstraction, mesh: Mesh | None = None):
     split, copy = row_sharding(mesh), replicated(mesh)
 
     def place(path, leaf):
-        name = getattr(path[-1], "name", None) if path else None
+        names = {getattr(key, "name", None) for key in path}  # a coded field's codes and table too
         if isinstance(leaf, _TRACER):
             raise TypeError("shard_abstraction needs concrete arrays; call it outside jit/vmap")
-        if np.ndim(leaf) >= 1 and np.shape(leaf)[0] == num_rows and name not in GLOBAL_FIELDS:
+        if np.ndim(leaf) >= 1 and np.shape(leaf)[0] == num_rows and not names & GLOBAL_FIELDS:
             if pad:
                 host = np.asarray(leaf)  # pad on the host: the full array need not fit one device
                 leaf = np.concatenate([host, np.repeat(host[-1:], pad, axis=0)])
@@ -179,9 +180,9 @@ def unshard_abstraction(abstraction, device=None):
     padded = rows.size
 
     def gather(path, leaf):
-        name = getattr(path[-1], "name", None) if path else None
+        names = {getattr(key, "name", None) for key in path}
         host = np.asarray(leaf)
-        if host.ndim >= 1 and host.shape[0] == padded and name not in GLOBAL_FIELDS:
+        if host.ndim >= 1 and host.shape[0] == padded and not names & GLOBAL_FIELDS:
             host = host[:num_rows]
         return jnp.asarray(host) if device is None else jax.device_put(host, device)
 

@@ -112,6 +112,15 @@ CHILD = textwrap.dedent(r'''
     if sharded:  # a mesh from jax.make_mesh (explicit axes by default) is made automatic
         explicit = shard_abstraction(sj.abstract(system, grid, noise, "smdp"), jax.make_mesh((4,), ("rows",)))
         save("explicit", sj.synthesize(explicit).lower)
+        # a coded array's table stays whole even when it has as many values as there are rows
+        import dataclasses
+        from smdpjax.abstraction.coded import Coded
+        imdp = sj.abstract(system, grid, noise, "imdp")
+        codes, table = imdp.chunk_upper.codes, imdp.chunk_upper.table
+        wide = jnp.zeros(imdp.num_rows).at[:table.shape[0]].set(table)
+        wide = shard_abstraction(dataclasses.replace(imdp, chunk_upper=Coded(codes=codes, table=wide)), mesh)
+        info["coded_table"] = [wide.chunk_upper.table.shape[0] == imdp.num_rows,
+                               wide.chunk_upper.table.sharding.is_fully_replicated]
     np.savez(out_dir + "/arrays.npz", **arrays)
     with open(out_dir + "/info.json", "w") as f:
         json.dump(info, f)
@@ -220,6 +229,10 @@ def _assert_near_ties(runs, kind, policy_one, policy_many):
     assert differ.size <= 0.05 * rows.size
     gap = np.abs(q[differ, policy_one[rows][differ]] - q[differ, policy_many[rows][differ]])
     assert np.all(gap <= 2e-6), gap  # 2 x the default tolerance (1e-6)
+
+
+def test_coded_table_is_replicated_whatever_its_length(runs):
+    assert runs["many"][0]["coded_table"] == [True, True]
 
 
 def test_explicit_mesh_is_made_automatic(runs):

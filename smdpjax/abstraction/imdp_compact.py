@@ -51,6 +51,7 @@ import numpy as np
 from .._pytree import pytree_dataclass, static_field
 from .base import AbstractionMixin, check_adversary
 from .clusters import index_dtype
+from .coded import decoded, encode, map_entries
 from .imdp import first_rank_filling, value_ranking
 
 # Explicit column sums up to this many slots per chunk (see ``imdp.interval_min``).
@@ -71,7 +72,8 @@ class CompactIMDP(AbstractionMixin):
         chunk_succ: ``(C, A, W)`` int16/int32 successors (cells, sink ``N``); a row's chunks hold
             its lists in increasing order, padded with ``N + 1``.
         chunk_upper: ``(C, A, W)`` float64 upper bounds of Lemma 1, ``upper_rest`` included (0 on
-            padding).
+            padding); a ``coded.Coded`` array (codes into a table of the distinct values) where
+            that is smaller.
         chunk_row: ``(C,)`` int32 the row (index into ``rows``) of each chunk, nondecreasing.
         lower_succ: ``(R, A, L)`` int16/int32 the states with a positive lower bound, padded with
             ``N + 1``.
@@ -145,7 +147,7 @@ class CompactIMDP(AbstractionMixin):
         c_succ, c_upper, chunk_row, l_succ, l_value = chunk_lists(successors.astype(index_dtype(n_states)), lower,
                                                                   upper, listed, widths, chunk, num_lower, n_states)
         slots = c_succ.shape[0] * c_succ.shape[2] / num_rows  # per row and action
-        return cls(chunk_succ=c_succ, chunk_upper=c_upper, chunk_row=chunk_row, lower_succ=l_succ,
+        return cls(chunk_succ=c_succ, chunk_upper=encode(c_upper), chunk_row=chunk_row, lower_succ=l_succ,
                    lower_value=l_value, upper_rest=jnp.asarray(upper_rest), rows=jnp.asarray(rows, jnp.int32),
                    labels=labels, width=int(widths.max()), list_rows=num_rows,
                    **block_fields(chunk_row, num_rows, c_succ.shape[1], slots))
@@ -185,7 +187,7 @@ class CompactIMDP(AbstractionMixin):
         by_row = actions[:, None, None]
         pick = lambda a, act: jnp.take_along_axis(a, act, axis=1)
         return dataclasses.replace(self, chunk_succ=pick(self.chunk_succ, by_chunk),
-                                   chunk_upper=pick(self.chunk_upper, by_chunk),
+                                   chunk_upper=map_entries(self.chunk_upper, lambda a: pick(a, by_chunk)),
                                    lower_succ=pick(self.lower_succ, by_row), lower_value=pick(self.lower_value, by_row),
                                    block_rows=self.strategy_blocks[0], block_chunks=self.strategy_blocks[1])
 
@@ -198,8 +200,8 @@ class CompactIMDP(AbstractionMixin):
             blocks = self.strategy_blocks
             pick = lambda a, act: jnp.take_along_axis(a, act[:, None, None], axis=1)[:, 0]
             by_chunk = actions[self.chunk_row]
-            arrays = (pick(arrays[0], by_chunk), pick(arrays[1], by_chunk), pick(arrays[2], actions),
-                      pick(arrays[3], actions))
+            arrays = (pick(arrays[0], by_chunk), map_entries(arrays[1], lambda a: pick(a, by_chunk)),
+                      pick(arrays[2], actions), pick(arrays[3], actions))
         succ, upper, lower_succ, lower_value = arrays
         rows = self.list_rows or self.num_rows
         value = chunked_interval_min(w, value_ranking(w), succ, upper, self.chunk_row, lower_succ[:rows],
@@ -225,7 +227,7 @@ class CompactIMDP(AbstractionMixin):
     @property
     def upper(self):
         """``(R, A, width)`` padded upper bounds, as ``IMDP.upper`` (built on access)."""
-        return self._padded(self.chunk_upper, 0.0)
+        return self._padded(decoded(self.chunk_upper), 0.0)
 
     @property
     def lower(self):
@@ -361,7 +363,8 @@ def in_row_blocks(solve, by_row, by_chunk, fills, chunk_row, blocks):
 
     Args:
         solve: an inner problem over rows ``by_row`` (arrays ``(R, ...)``) whose lists are the
-            chunks ``by_chunk`` (arrays ``(C, ...)``) of the rows ``chunk_row (C,)``.
+            chunks ``by_chunk`` (arrays ``(C, ...)``, or ``coded.Coded`` ones, which ``solve``
+            receives decoded) of the rows ``chunk_row (C,)``.
         fills: per chunk array, the entry that stands for no entry (padding).
         blocks: ``(block_rows, block_chunks)`` from ``inner_blocks``; ``(0, 0)``: all rows at once.
 
@@ -372,13 +375,15 @@ def in_row_blocks(solve, by_row, by_chunk, fills, chunk_row, blocks):
     block_rows, block_chunks = blocks
     num_rows, num_chunks = by_row[0].shape[0], chunk_row.shape[0]
     if not 0 < block_rows < num_rows:
-        return solve(by_row, by_chunk, chunk_row)
+        return solve(by_row, tuple(decoded(a) for a in by_chunk), chunk_row)
     block_chunks = min(block_chunks, num_chunks)
     n_blocks = -(-num_rows // block_rows)
     row_start = np.minimum(np.arange(n_blocks) * block_rows, num_rows - block_rows)
     chunk_start = jnp.minimum(jnp.searchsorted(chunk_row, jnp.asarray(row_start, chunk_row.dtype), side="left"),
                               num_chunks - block_chunks).astype(jnp.int32)
-    take = lambda a, at, size: jax.lax.dynamic_slice_in_dim(a, at, size, axis=0)
+
+    def take(a, at, size):  # a coded array is decoded a block at a time
+        return decoded(map_entries(a, lambda x: jax.lax.dynamic_slice_in_dim(x, at, size, axis=0)))
 
     def one(start):
         r0, c0 = start

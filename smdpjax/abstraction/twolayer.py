@@ -19,18 +19,21 @@ monotone in k; a bisection finds where it reaches 1, and the state of rank k* - 
 The order of the cells inside a block is the block's own (it does not depend on the row): each
 call sorts the B blocks' cells, puts every row's capacities in that order and takes their prefix
 sums once, so that a bisection step only reads, per block met, the prefix sums at the number of
-the block's cells ranked below k (a binary search in the block's sorted ranks).
+the block's cells ranked below k (one read of a count table ``(N + 1, B + 2)`` built from the
+sort, or a binary search in the block's sorted ranks where the table would be large or read
+little: ``wants_count_table``).
 Blocks that no bounded reachable set meets (only the remainder can put mass there) are handled
 in aggregate through a sorted list of the blocks' lowest ranks. Per iteration:
-O(N log N + B S log S + R A T S) once, then O(R A T log S) per bisection step (log N steps),
-T the blocks a row meets, S the cells per block.
+O(N log N + B S log S + P S) once, then O(R A T) (count table) or O(R A T log S) per bisection
+step (log N steps), T the most blocks a row meets, S the cells per block, P the met pairs.
 
 Storage: the fine layer is kept sparse (per row and action the listed successors' slots
 ``t S + i`` and upper bounds, in fixed-width chunks as in ``imdp_compact``, the positive lower
 bounds as pairs); every backup lays the met blocks' capacities out in rank order (``upper_rest``
-on every cell, the listed bounds scattered over it) before the greedy, so only that transient,
-not the stored abstraction, has the ``(R, A, T, S)`` shape (row 38: 179 MB stored instead of
-2211 MB). On the CPU the rows are solved a block at a time (``imdp_compact.in_row_blocks``), so
+on every cell, the listed bounds scattered over it) before the greedy, one row of ``S`` per met
+(list, block) pair (``block_pairs``: rows meet 30 of the T = 81 block slots on average on the
+4-room temperature row), so only that transient, not the stored abstraction, has ``S`` entries
+per met block (row 38: 179 MB stored instead of 2211 MB). On the CPU the rows are solved a block at a time (``imdp_compact.in_row_blocks``), so
 that transient is a block's, small enough to stay in the cache through the bisection.
 """
 
@@ -48,6 +51,7 @@ from .._pytree import pytree_dataclass, static_field
 from .base import AbstractionMixin, check_adversary
 from .box_bounds import region_bounds
 from .clusters import index_dtype
+from .coded import decoded, encode, map_entries
 from .grid_clusters import GridClusters
 from .imdp import value_ranking
 from .imdp_compact import block_fields, chunk_lists, in_row_blocks
@@ -93,8 +97,8 @@ class TwoLayerIMDP(AbstractionMixin):
         block_lower, block_upper: ``(R, A, T)`` coarse bounds L_B, U_B.
         chunk_slot: ``(C, A, W)`` int16/int32 slots ``t S + i`` (cell ``i`` of block slot ``t``)
             of the listed fine successors (those a bounded reachable set meets), padded with ``T S``.
-        chunk_upper: ``(C, A, W)`` their upper bounds (``upper_rest`` included); every other cell
-            of a met block has ``[0, upper_rest]``.
+        chunk_upper: ``(C, A, W)`` their upper bounds (``upper_rest`` included; a ``coded.Coded``
+            array where that is smaller); every other cell of a met block has ``[0, upper_rest]``.
         chunk_row: ``(C,)`` int32 the row of each chunk, nondecreasing.
         lower_slot, lower_value: ``(R, A, L)`` the positive fine lower bounds (slots as
             ``chunk_slot``, padding ``T S``).
@@ -169,7 +173,7 @@ class TwoLayerIMDP(AbstractionMixin):
                  pair_counts(met_per_list.max(1), blocking["strategy_blocks"][0]))
         return cls(blocks=blocks.astype(index_dtype(num_blocks + 2)), block_lower=block_lower,
                    block_upper=block_upper,
-                   chunk_slot=c_slot, chunk_upper=c_upper, chunk_row=row_j, lower_slot=l_slot, lower_value=l_value,
+                   chunk_slot=c_slot, chunk_upper=encode(c_upper), chunk_row=row_j, lower_slot=l_slot, lower_value=l_value,
                    cells_of=jnp.asarray(cells_of), upper_rest=rest, rows=jnp.asarray(clusters.rows, jnp.int32),
                    labels=jnp.asarray(grid.state_labels), block_shape=tuple(int(b) for b in block),
                    list_rows=int(widths.size), block_pairs=pairs, **blocking)
@@ -204,7 +208,7 @@ class TwoLayerIMDP(AbstractionMixin):
         return dataclasses.replace(self, blocks=pick(self.blocks, by_row), block_lower=pick(self.block_lower, by_row),
                                    block_upper=pick(self.block_upper, by_row),
                                    chunk_slot=pick(self.chunk_slot, by_chunk),
-                                   chunk_upper=pick(self.chunk_upper, by_chunk),
+                                   chunk_upper=map_entries(self.chunk_upper, lambda a: pick(a, by_chunk)),
                                    lower_slot=pick(self.lower_slot, by_row), lower_value=pick(self.lower_value, by_row),
                                    block_rows=self.strategy_blocks[0], block_chunks=self.strategy_blocks[1],
                                    block_pairs=(self.block_pairs[1],) * 2)
@@ -220,7 +224,7 @@ class TwoLayerIMDP(AbstractionMixin):
             row_blocks, num_pairs = self.strategy_blocks, self.block_pairs[1]
             pick = lambda a, act: jnp.take_along_axis(a, act[:, None, None], axis=1)[:, 0]
             by_row = tuple(pick(a, actions) for a in by_row)
-            by_chunk = tuple(pick(a, actions[self.chunk_row]) for a in by_chunk)
+            by_chunk = tuple(map_entries(a, lambda x: pick(x, actions[self.chunk_row])) for a in by_chunk)
         lists = rows * (self.num_actions if actions is None else 1)
         ranking = block_ranking(w, self.cells_of, wants_count_table(self.num_states, self.cells_of.shape[0],
                                                                     lists * self.num_block_slots))
@@ -247,7 +251,7 @@ class TwoLayerIMDP(AbstractionMixin):
         if lower:
             return _scatter_slots(jnp.zeros(cells.shape), self.lower_slot[:rows], self.lower_value[:rows])
         dense = jnp.where(cells < self.num_states, self.upper_rest, 0.0)
-        return _scatter_slots(dense, self.chunk_slot, self.chunk_upper, lead_rows=self.chunk_row)
+        return _scatter_slots(dense, self.chunk_slot, decoded(self.chunk_upper), lead_rows=self.chunk_row)
 
     @property
     def lower(self):

@@ -1,0 +1,61 @@
+"""Coded float arrays (``abstraction.coded``): exact, used only where smaller, and the classes
+that store their bounds coded give the values of the plain arrays."""
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import smdpjax as sj
+from smdpjax.abstraction import compute_grid_clusters
+from smdpjax.abstraction.coded import Coded, decoded, encode, map_entries
+
+
+@pytest.mark.parametrize("distinct, code_dtype", [(1, np.uint8), (256, np.uint8), (257, np.uint16),
+                                                  (65536, np.uint16)])
+def test_encode_is_exact_and_as_narrow_as_the_values_allow(distinct, code_dtype):
+    rng = np.random.default_rng(distinct)
+    values = rng.uniform(0, 1, distinct)
+    x = rng.permutation(np.concatenate([values, rng.choice(values, 300_000 - distinct)])).reshape(600, 500)
+    coded = encode(jnp.asarray(x))
+    assert isinstance(coded, Coded) and coded.codes.dtype == code_dtype and coded.table.shape == (distinct,)
+    assert coded.shape == x.shape and coded.dtype == x.dtype
+    np.testing.assert_array_equal(np.asarray(coded.decode()), x)  # bit for bit
+    assert coded.codes.nbytes + coded.table.nbytes < x.nbytes
+    pick = lambda a: a[::7, 3:9]
+    np.testing.assert_array_equal(np.asarray(decoded(map_entries(coded, pick))), x[::7, 3:9])
+
+
+def test_encode_leaves_arrays_it_cannot_shrink():
+    rng = np.random.default_rng(0)
+    many = jnp.asarray(rng.uniform(0, 1, 70_000))  # more distinct values than uint16 codes
+    assert encode(many) is many
+    small = jnp.asarray(rng.uniform(0, 1, 3))  # the table would outweigh the codes' saving
+    assert encode(small) is small
+    ints = jnp.arange(1000) % 3
+    assert encode(ints) is ints
+    assert decoded(ints) is ints
+
+
+def _drift(x, u, w):
+    return x + 0.1 * (jnp.array([jnp.cos(u[0]), jnp.sin(u[0])]) + w)
+
+
+@pytest.mark.parametrize("kind", ["imdp", "2imdp"])
+def test_classes_store_coded_upper_bounds_and_give_the_plain_values(kind, assert_same_q_values):
+    system = sj.System(_drift, actions=(np.arange(4) * np.pi / 2)[:, None], noise=sj.Uniform([-1, -1], [1, 1]))
+    grid = sj.StateGrid([0, 0], [1, 1], 10, reach=[([0.7, 0.7], [1, 1])])
+    noise = sj.NoiseGrid.box([-1, -1], [1, 1], 4)  # equal cells: few distinct Lemma 1 bounds
+    abstraction = sj.abstract(system, grid, noise, kind)
+    assert isinstance(abstraction.chunk_upper, Coded) and abstraction.chunk_upper.codes.dtype == np.uint8
+    plain = dataclasses.replace(abstraction, chunk_upper=abstraction.chunk_upper.decode())
+    assert abstraction.nbytes < plain.nbytes
+    np.testing.assert_array_equal(np.asarray(abstraction.upper), np.asarray(plain.upper))
+    rng = np.random.default_rng(1)
+    strategy = jnp.asarray(rng.integers(0, abstraction.num_actions, abstraction.num_rows), jnp.int32)
+    values = [jnp.asarray(rng.uniform(0, 1, grid.num_states)).at[-1].set(0.0) for _ in range(2)]
+    assert_same_q_values(abstraction, plain, values, strategy, atol=0.0)
+    a, b = sj.synthesize(abstraction), sj.synthesize(plain)
+    np.testing.assert_array_equal(np.asarray(a.lower), np.asarray(b.lower))
+    np.testing.assert_array_equal(np.asarray(a.upper), np.asarray(b.upper))
