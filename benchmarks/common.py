@@ -56,6 +56,26 @@ def monte_carlo(system, grid, policy, cells, per_cell: int, seed: int, max_steps
     return np.asarray(res.satisfied).reshape(len(cells), per_cell).mean(axis=1), res.undecided
 
 
+def row_clusters(row: int, kind: str | None = None):
+    """``(study, clusters)`` of Table 1 row ``row``: its case study and the clusters of its
+    reachable sets; with ``kind``, a ``ValueError`` unless the row is of that class."""
+    from smdpjax.abstraction import compute_grid_clusters
+
+    from .paper_table1 import row_spec
+    from .table1 import case_study
+
+    spec = row_spec(row)
+    if kind is not None and spec.kind != kind:
+        raise ValueError(f"row {row} is not {'an' if kind[0] in 'aeimos' else 'a'} {kind_name(kind)} row")
+    study = case_study(spec, False)
+    return study, compute_grid_clusters(study.system, study.state_grid, study.noise_grid, policy=study.controller,
+                                        method=study.reach_method)
+
+
+def kind_name(kind: str) -> str:
+    return {"imdp": "IMDP", "2imdp": "2I-MDP", "mimdp": "MI-MDP", "smdp": "SMDP"}[kind]
+
+
 def rss_bytes() -> int:
     """Peak resident memory of this process (``ru_maxrss`` is in KiB on Linux)."""
     import resource

@@ -17,23 +17,15 @@ import time
 import jax
 import numpy as np
 
-from .common import argument_parser, median, write_result
+from .common import argument_parser, median, row_clusters, write_result
 
 VARIANTS = {"repriced": True, "HiGHS every LP": False}
 
 
 def measure(row: int, repeats: int) -> dict:
-    from smdpjax.abstraction import build, compute_grid_clusters
+    from smdpjax.abstraction import build
 
-    from .paper_table1 import row_spec
-    from .table1 import case_study
-
-    spec = row_spec(row)
-    if spec.kind != "mimdp":
-        raise ValueError(f"row {row} is not an MI-MDP row")
-    study = case_study(spec, False)
-    clusters = compute_grid_clusters(study.system, study.state_grid, study.noise_grid, policy=study.controller,
-                                     method=study.reach_method)
+    study, clusters = row_clusters(row, "mimdp")
     times = {name: [] for name in VARIANTS}
     lp_times = {name: [] for name in VARIANTS}
     stats, solutions = {}, {}

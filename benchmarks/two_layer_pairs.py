@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .common import argument_parser, median, write_result
+from .common import argument_parser, median, row_clusters, write_result
 
 
 @contextlib.contextmanager
@@ -42,17 +42,9 @@ def _every_slot():
 
 
 def measure(row: int, repeats: int) -> dict:
-    from smdpjax.abstraction import build, compute_grid_clusters
+    from smdpjax.abstraction import build
 
-    from .paper_table1 import row_spec
-    from .table1 import case_study
-
-    spec = row_spec(row)
-    if spec.kind != "2imdp":
-        raise ValueError(f"row {row} is not a 2I-MDP row")
-    study = case_study(spec, False)
-    clusters = compute_grid_clusters(study.system, study.state_grid, study.noise_grid, policy=study.controller,
-                                     method=study.reach_method)
+    study, clusters = row_clusters(row, "2imdp")
     pairs = build("2imdp", study.state_grid, clusters)
     variants = {"met pairs": (pairs, contextlib.nullcontext), "every slot": (
         dataclasses.replace(pairs, block_pairs=(0, 0)), _every_slot)}
