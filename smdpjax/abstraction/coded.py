@@ -11,6 +11,8 @@ from a table that stays in the cache.
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -19,13 +21,21 @@ from .._pytree import pytree_dataclass
 
 # Distinct values a table may hold (codes in uint16 at most).
 MAX_CODES = 1 << 16
+# Entries of the strided samples ``encode`` builds its table from before it looks up every entry.
+_SAMPLES = (1 << 16, 1 << 20)
+# Up to this many entries the look-up runs in NumPy (no compilation for each new size).
+_HOST_LOOKUP = 1 << 20
+# Tables of up to _HASH_MAX values are looked up through a hash into at most 2^_HASH_BITS slots
+# (8 MB of uint16), where one of _MULTIPLIERS separates them (likely up to ~2 000 values).
+_HASH_MAX = 1 << 13
+_HASH_BITS = 22
 
 
 @pytree_dataclass
 class Coded:
     """Attributes:
         codes: ``(...)`` uint8/uint16 index of each entry's value in ``table``.
-        table: ``(U,)`` the distinct values, increasing.
+        table: ``(U,)`` the distinct values (ordered by their bit patterns).
     """
 
     codes: jax.Array
@@ -58,18 +68,74 @@ class Coded:
 
 def encode(x, max_codes: int = MAX_CODES):
     """``x`` as a ``Coded`` array where that is smaller (at most ``max_codes`` distinct values,
-    codes narrower than ``x``'s entries), otherwise ``x`` unchanged. Needs a concrete ``x``."""
-    host = np.asarray(x)
-    if host.size == 0 or host.dtype.kind != "f":
+    codes narrower than ``x``'s entries), otherwise ``x`` unchanged. Needs a concrete float64 ``x``.
+
+    Values are told apart by their bits (decoding returns every entry bit for bit). The table is
+    found from a strided sample of the entries and completed with the values the sample missed,
+    so a large array is never sorted whole: each entry is looked up through a multiplicative hash
+    that is collision-free on the table where one is found, else by a binary search in it."""
+    if not hasattr(x, "dtype") or x.dtype != jnp.float64 or x.size == 0:
         return x
-    table, codes = np.unique(host, return_inverse=True)  # NaN-free: bounds are checked upstream
-    if table.size > max_codes:
-        return x
+    flat = jnp.asarray(x).reshape(-1)
+    host_bits = np.asarray(flat).view(np.uint64)
+    table = np.zeros(0, np.uint64)
+    for sample in _SAMPLES + (flat.size,):  # ever larger strided samples, the last one all entries
+        bits = host_bits[::max(1, flat.size // sample)]
+        codes, missed = _lookup(bits, flat if bits.size == flat.size else None, table)
+        if missed:
+            table = np.union1d(table, bits[table[np.asarray(codes)] != bits] if table.size else bits)
+            if table.size > max_codes:
+                return x
+    if missed:  # the last lookup added values: look every entry up again
+        codes, missed = _lookup(host_bits, flat, table)
     code_dtype = np.uint8 if table.size <= 256 else np.uint16
-    coded_bytes = host.size * np.dtype(code_dtype).itemsize + table.nbytes
-    if coded_bytes >= host.nbytes:
+    if flat.size * np.dtype(code_dtype).itemsize + table.nbytes >= flat.nbytes:
         return x
-    return Coded(codes=jnp.asarray(codes.reshape(host.shape).astype(code_dtype)), table=jnp.asarray(table))
+    values = jnp.asarray(table.view(np.float64))
+    return Coded(codes=jnp.asarray(codes, code_dtype).reshape(x.shape), table=values)
+
+
+# Odd 64-bit multipliers tried for a hash that separates a table's values (splitmix64's, golden ratio).
+_MULTIPLIERS = (0x9E3779B97F4A7C15, 0xBF58476D1CE4E5B9, 0x94D049BB133111EB, 0xC2B2AE3D27D4EB4F,
+                0xFF51AFD7ED558CCD, 0xC4CEB9FE1A85EC53, 0x165667B19E3779F9, 0xD6E8FEB86659FD93)
+
+
+def _lookup(bits, flat, table_bits):
+    """``(codes (n,), missed)``: the index of each of the bit patterns ``bits (n,)`` (host) in
+    ``table_bits`` (sorted) and whether some entry is not in the table. Large arrays (``flat``,
+    the same entries as a device array) are looked up in one compiled pass: a multiplicative hash
+    where one separates the table's values, else a binary search."""
+    size = int(table_bits.size)
+    if size == 0:
+        return np.zeros(bits.shape, np.int32), True
+    if flat is None or bits.size <= _HOST_LOOKUP:
+        codes = np.minimum(np.searchsorted(table_bits, bits), size - 1)
+        return codes, bool(np.any(table_bits[codes] != bits))
+    if size <= _HASH_MAX:
+        shift = 64 - min(_HASH_BITS, 2 * max(size - 1, 1).bit_length() + 1)
+        for mult in _MULTIPLIERS:
+            slots = (table_bits * np.uint64(mult)) >> np.uint64(shift)
+            if np.unique(slots).size == size:  # no two values share a slot
+                lut = np.zeros(1 << (64 - shift), np.uint16)
+                lut[slots] = np.arange(size, dtype=np.uint16)
+                codes, missed = _hash_codes(flat, jnp.asarray(table_bits), jnp.asarray(lut), np.uint64(mult), shift)
+                return codes, bool(missed)
+    codes, missed = _search_codes(flat, jnp.asarray(table_bits))
+    return codes, bool(missed)
+
+
+@functools.partial(jax.jit, static_argnums=4)
+def _hash_codes(flat, table_bits, lut, mult, shift: int):
+    bits = jax.lax.bitcast_convert_type(flat, jnp.uint64)
+    codes = lut[((bits * mult) >> np.uint64(shift)).astype(jnp.int32)].astype(jnp.int32)
+    return codes, jnp.any(table_bits[codes] != bits)
+
+
+@jax.jit
+def _search_codes(flat, table_bits):
+    bits = jax.lax.bitcast_convert_type(flat, jnp.uint64)
+    codes = jnp.minimum(jnp.searchsorted(table_bits, bits), table_bits.shape[0] - 1).astype(jnp.int32)
+    return codes, jnp.any(table_bits[codes] != bits)
 
 
 def decoded(x) -> jax.Array:

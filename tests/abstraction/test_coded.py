@@ -59,3 +59,20 @@ def test_classes_store_coded_upper_bounds_and_give_the_plain_values(kind, assert
     a, b = sj.synthesize(abstraction), sj.synthesize(plain)
     np.testing.assert_array_equal(np.asarray(a.lower), np.asarray(b.lower))
     np.testing.assert_array_equal(np.asarray(a.upper), np.asarray(b.upper))
+
+
+@pytest.mark.parametrize("lookup", ["numpy", "hash", "search"])
+@pytest.mark.parametrize("distinct", [3, 300])
+def test_encode_completes_the_sampled_table_bit_for_bit(distinct, lookup, monkeypatch):
+    from smdpjax.abstraction import coded
+
+    monkeypatch.setattr(coded, "_SAMPLES", (4, 64))  # samples that miss most values
+    if lookup != "numpy":  # the compiled pass over every entry, hashed or searched
+        monkeypatch.setattr(coded, "_HOST_LOOKUP", 0)
+        monkeypatch.setattr(coded, "_HASH_MAX", coded._HASH_MAX if lookup == "hash" else 0)
+        monkeypatch.setattr(coded, f"_{'search' if lookup == 'hash' else 'hash'}_codes", None)  # the other unused
+    values = np.concatenate([np.arange(1, distinct - 2) / 7, [0.0, -0.0, np.nan]])
+    x = np.random.default_rng(distinct).permutation(np.repeat(values, 50))
+    got = encode(jnp.asarray(x))
+    assert isinstance(got, Coded) and got.table.shape == (distinct,)
+    np.testing.assert_array_equal(np.asarray(got.decode()).view(np.uint64), x.view(np.uint64))
