@@ -110,10 +110,11 @@ def padded_rows(num_rows: int, mesh: Mesh) -> int:
 def shard_abstraction(abstraction, mesh: Mesh | None = None):
     """The same abstraction with its rows split across the devices of ``mesh``.
 
-    Every leaf whose leading size is the row count ``R`` (except the fields in
-    ``GLOBAL_FIELDS`` and the leaves inside them) is padded to a multiple of the device count by
-    repeating its last row and placed with ``row_sharding(mesh)``; every other leaf is replicated. Works for any abstraction
-    PyTree with a ``rows`` leaf (nested ones, such as the MI-MDP's ``relaxation``, included).
+    Every leaf whose leading size is the row count ``R`` (except the fields in ``GLOBAL_FIELDS`` and
+    the leaves inside them) is padded to a multiple of the device count by repeating its last row
+    and placed with ``row_sharding(mesh)``; every other leaf is replicated. Works for any
+    abstraction PyTree with a ``rows`` leaf (nested ones, such as the MI-MDP's ``relaxation``,
+    included).
 
     Args:
         abstraction: from ``smdpjax.abstract`` (IMDP, TwoLayerIMDP, MIMDP, SMDP), with concrete

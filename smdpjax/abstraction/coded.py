@@ -3,9 +3,9 @@
 Lemma 1's bounds are sums of noise-cell probabilities over which cells a box meets, so on
 regular systems a few values repeat across millions of entries (the 2-room temperature row of
 Table 1: 12 distinct upper bounds in 4 800 slots). ``encode`` stores such an array as ``uint8``
-or ``uint16`` codes and the sorted table of its values, exactly (no value is rounded: decoding
-gives the same floats bit for bit), and only where that takes fewer bytes; ``decoded`` reads
-either form. The inner problems decode a block of rows at a time (``imdp_compact.in_row_blocks``),
+(or, on request, ``uint16``) codes and the table of its values, exactly (no value is rounded:
+decoding gives the same floats bit for bit), and only where that takes fewer bytes; ``decoded``
+reads either form. The inner problems decode a block of rows at a time (``imdp_compact.in_row_blocks``),
 from a table that stays in the cache.
 """
 
@@ -19,15 +19,15 @@ import numpy as np
 
 from .._pytree import pytree_dataclass
 
-# Distinct values a table may hold (codes in uint16 at most).
-MAX_CODES = 1 << 16
+# Distinct values a table holds by default: uint8 codes, one level of hashes that stays in the
+# cache. Up to 2^16 (uint16 codes) on request: a nonlinear system's bounds take thousands of
+# values, and looking 34 M of them up cost about 1 s of row 17's T_abs (a 3.3x smaller store).
+MAX_CODES = 1 << 8
 # Entries of the strided samples ``encode`` builds its table from before it looks up every entry.
 _SAMPLES = (1 << 16, 1 << 20)
 # Up to this many entries the look-up runs in NumPy (no compilation for each new size).
 _HOST_LOOKUP = 1 << 20
-# Tables of up to _HASH_MAX values are looked up through a hash into at most 2^_HASH_BITS slots
-# (8 MB of uint16), where one of _MULTIPLIERS separates them (likely up to ~2 000 values).
-_HASH_MAX = 1 << 13
+# The look-up hashes into at most 2^_HASH_BITS slots per level (8 MB of uint16).
 _HASH_BITS = 22
 
 
@@ -68,12 +68,15 @@ class Coded:
 
 def encode(x, max_codes: int = MAX_CODES):
     """``x`` as a ``Coded`` array where that is smaller (at most ``max_codes`` distinct values,
-    codes narrower than ``x``'s entries), otherwise ``x`` unchanged. Needs a concrete float64 ``x``.
+    at most 2^16; codes narrower than ``x``'s entries), otherwise ``x`` unchanged. Needs a
+    concrete float64 ``x``.
 
     Values are told apart by their bits (decoding returns every entry bit for bit). The table is
     found from a strided sample of the entries and completed with the values the sample missed,
-    so a large array is never sorted whole: each entry is looked up through a multiplicative hash
-    that is collision-free on the table where one is found, else by a binary search in it."""
+    so a large array is never sorted whole: each entry is looked up through a few levels of
+    multiplicative hashes that together separate the table's values (``_hash_levels``)."""
+    if max_codes > 1 << 16:
+        raise ValueError(f"max_codes must be at most 65536 (uint16 codes), got {max_codes}")
     if not hasattr(x, "dtype") or x.dtype != jnp.float64 or x.size == 0:
         return x
     flat = jnp.asarray(x).reshape(-1)
@@ -103,32 +106,57 @@ _MULTIPLIERS = (0x9E3779B97F4A7C15, 0xBF58476D1CE4E5B9, 0x94D049BB133111EB, 0xC2
 def _lookup(bits, flat, table_bits):
     """``(codes (n,), missed)``: the index of each of the bit patterns ``bits (n,)`` (host) in
     ``table_bits`` (sorted) and whether some entry is not in the table. Large arrays (``flat``,
-    the same entries as a device array) are looked up in one compiled pass: a multiplicative hash
-    where one separates the table's values, else a binary search."""
+    the same entries as a device array) are looked up in one compiled pass through the hashes of
+    ``_hash_levels``, else by a binary search."""
     size = int(table_bits.size)
     if size == 0:
         return np.zeros(bits.shape, np.int32), True
     if flat is None or bits.size <= _HOST_LOOKUP:
         codes = np.minimum(np.searchsorted(table_bits, bits), size - 1)
         return codes, bool(np.any(table_bits[codes] != bits))
-    if size <= _HASH_MAX:
-        shift = 64 - min(_HASH_BITS, 2 * max(size - 1, 1).bit_length() + 1)
-        for mult in _MULTIPLIERS:
-            slots = (table_bits * np.uint64(mult)) >> np.uint64(shift)
-            if np.unique(slots).size == size:  # no two values share a slot
-                lut = np.zeros(1 << (64 - shift), np.uint16)
-                lut[slots] = np.arange(size, dtype=np.uint16)
-                codes, missed = _hash_codes(flat, jnp.asarray(table_bits), jnp.asarray(lut), np.uint64(mult), shift)
-                return codes, bool(missed)
-    codes, missed = _search_codes(flat, jnp.asarray(table_bits))
+    levels = _hash_levels(table_bits)
+    if levels is None:
+        codes, missed = _search_codes(flat, jnp.asarray(table_bits))
+    else:
+        mults, luts = zip(*levels)
+        shift = 64 - int(np.log2(luts[0].size))
+        codes, missed = _hash_codes(flat, jnp.asarray(table_bits), tuple(jnp.asarray(lut) for lut in luts),
+                                    tuple(np.uint64(m) for m in mults), shift)
     return codes, bool(missed)
 
 
+def _hash_levels(table_bits):
+    """``[(multiplier, lut)]``: each value of ``table_bits`` in the slot of exactly one level's
+    table ``lut`` (its code there), where no other value still unplaced at that level hashes
+    (``(bits * multiplier) >> shift``); ``None`` if ``_MULTIPLIERS`` run out first."""
+    size = table_bits.size
+    bits = min(_HASH_BITS, 2 * max(size - 1, 1).bit_length() + 1)
+    shift = np.uint64(64 - bits)
+    left = np.arange(size)
+    levels = []
+    for mult in _MULTIPLIERS:
+        slots = (table_bits[left] * np.uint64(mult)) >> shift
+        _, first, counts = np.unique(slots, return_index=True, return_counts=True)
+        alone = first[counts == 1]
+        lut = np.zeros(1 << bits, np.uint16)
+        lut[slots[alone]] = left[alone]
+        levels.append((mult, lut))
+        left = np.delete(left, alone)
+        if left.size == 0:
+            return levels
+    return None
+
+
 @functools.partial(jax.jit, static_argnums=4)
-def _hash_codes(flat, table_bits, lut, mult, shift: int):
+def _hash_codes(flat, table_bits, luts, mults, shift: int):
     bits = jax.lax.bitcast_convert_type(flat, jnp.uint64)
-    codes = lut[((bits * mult) >> np.uint64(shift)).astype(jnp.int32)].astype(jnp.int32)
-    return codes, jnp.any(table_bits[codes] != bits)
+    codes = jnp.zeros(bits.shape, jnp.int32)
+    found = jnp.zeros(bits.shape, bool)
+    for lut, mult in zip(luts, mults):  # the first level whose slot holds the entry's value
+        code = lut[((bits * mult) >> np.uint64(shift)).astype(jnp.int32)].astype(jnp.int32)
+        hit = ~found & (table_bits[code] == bits)
+        codes, found = jnp.where(hit, code, codes), found | hit
+    return codes, ~jnp.all(found)
 
 
 @jax.jit

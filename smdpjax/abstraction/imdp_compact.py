@@ -11,7 +11,8 @@ cell; none at all on the temperature rows), so most of those bytes are padding a
 * each row's lists cut into ``ceil(width_r / W)`` *chunks* of one width ``W`` (``chunk_width``
   picks it), all chunks in one ``(C, A, W)`` array with the row of each chunk beside it, so the
   padding is at most ``W - 1`` slots per row and every backup is one program whatever the widths;
-* only ``successors`` (int16 where the states fit) and ``upper`` per entry, 10 bytes instead of 18;
+* only ``successors`` (int16 where the states fit) and ``upper`` per entry, 10 bytes instead of 18
+  (3 or 4 where the upper bounds take at most 65 536 distinct values: ``coded``);
 * the positive lower bounds as ``(state, value)`` pairs, ``L`` per list (``L`` = the most any
   list has, 0 when none has one).
 

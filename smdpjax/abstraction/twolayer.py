@@ -33,8 +33,9 @@ bounds as pairs); every backup lays the met blocks' capacities out in rank order
 on every cell, the listed bounds scattered over it) before the greedy, one row of ``S`` per met
 (list, block) pair (``block_pairs``: rows meet 30 of the T = 81 block slots on average on the
 4-room temperature row), so only that transient, not the stored abstraction, has ``S`` entries
-per met block (row 38: 179 MB stored instead of 2211 MB). On the CPU the rows are solved a block at a time (``imdp_compact.in_row_blocks``), so
-that transient is a block's, small enough to stay in the cache through the bisection.
+per met block (row 38: 75 MB stored, the upper bounds ``coded``, instead of 2211 MB). On the CPU
+the rows are solved a block at a time (``imdp_compact.in_row_blocks``), so that transient is a
+block's, small enough to stay in the cache through the bisection.
 """
 
 from __future__ import annotations
@@ -173,7 +174,8 @@ class TwoLayerIMDP(AbstractionMixin):
                  pair_counts(met_per_list.max(1), blocking["strategy_blocks"][0]))
         return cls(blocks=blocks.astype(index_dtype(num_blocks + 2)), block_lower=block_lower,
                    block_upper=block_upper,
-                   chunk_slot=c_slot, chunk_upper=encode(c_upper), chunk_row=row_j, lower_slot=l_slot, lower_value=l_value,
+                   chunk_slot=c_slot, chunk_upper=encode(c_upper), chunk_row=row_j, lower_slot=l_slot,
+                   lower_value=l_value,
                    cells_of=jnp.asarray(cells_of), upper_rest=rest, rows=jnp.asarray(clusters.rows, jnp.int32),
                    labels=jnp.asarray(grid.state_labels), block_shape=tuple(int(b) for b in block),
                    list_rows=int(widths.size), block_pairs=pairs, **blocking)

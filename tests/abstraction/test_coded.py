@@ -18,7 +18,9 @@ def test_encode_is_exact_and_as_narrow_as_the_values_allow(distinct, code_dtype)
     rng = np.random.default_rng(distinct)
     values = rng.uniform(0, 1, distinct)
     x = rng.permutation(np.concatenate([values, rng.choice(values, 300_000 - distinct)])).reshape(600, 500)
-    coded = encode(jnp.asarray(x))
+    if distinct > 256:  # uint16 codes only on request
+        assert encode(jnp.asarray(x)).dtype == np.float64 and not isinstance(encode(jnp.asarray(x)), Coded)
+    coded = encode(jnp.asarray(x), max_codes=1 << 16)
     assert isinstance(coded, Coded) and coded.codes.dtype == code_dtype and coded.table.shape == (distinct,)
     assert coded.shape == x.shape and coded.dtype == x.dtype
     np.testing.assert_array_equal(np.asarray(coded.decode()), x)  # bit for bit
@@ -36,6 +38,8 @@ def test_encode_leaves_arrays_it_cannot_shrink():
     ints = jnp.arange(1000) % 3
     assert encode(ints) is ints
     assert decoded(ints) is ints
+    with pytest.raises(ValueError, match="at most 65536"):
+        encode(many, max_codes=1 << 17)
 
 
 def _drift(x, u, w):
@@ -61,18 +65,22 @@ def test_classes_store_coded_upper_bounds_and_give_the_plain_values(kind, assert
     np.testing.assert_array_equal(np.asarray(a.upper), np.asarray(b.upper))
 
 
-@pytest.mark.parametrize("lookup", ["numpy", "hash", "search"])
+@pytest.mark.parametrize("lookup", ["numpy", "hash", "levels", "search"])
 @pytest.mark.parametrize("distinct", [3, 300])
 def test_encode_completes_the_sampled_table_bit_for_bit(distinct, lookup, monkeypatch):
     from smdpjax.abstraction import coded
 
     monkeypatch.setattr(coded, "_SAMPLES", (4, 64))  # samples that miss most values
-    if lookup != "numpy":  # the compiled pass over every entry, hashed or searched
+    if lookup != "numpy":  # the compiled pass over every entry
         monkeypatch.setattr(coded, "_HOST_LOOKUP", 0)
-        monkeypatch.setattr(coded, "_HASH_MAX", coded._HASH_MAX if lookup == "hash" else 0)
-        monkeypatch.setattr(coded, f"_{'search' if lookup == 'hash' else 'hash'}_codes", None)  # the other unused
+    if lookup == "levels":  # 1 024 slots: 300 values need several levels of hashes
+        monkeypatch.setattr(coded, "_HASH_BITS", 10)
+        assert distinct < 300 or len(coded._hash_levels(np.arange(300, dtype=np.uint64) * 7919)) > 1
+    if lookup == "search":  # no hash separates them: a binary search
+        monkeypatch.setattr(coded, "_MULTIPLIERS", ())
+    monkeypatch.setattr(coded, "_search_codes" if lookup in ("hash", "levels") else "_hash_codes", None)
     values = np.concatenate([np.arange(1, distinct - 2) / 7, [0.0, -0.0, np.nan]])
     x = np.random.default_rng(distinct).permutation(np.repeat(values, 50))
-    got = encode(jnp.asarray(x))
+    got = encode(jnp.asarray(x), max_codes=1 << 16)
     assert isinstance(got, Coded) and got.table.shape == (distinct,)
     np.testing.assert_array_equal(np.asarray(got.decode()).view(np.uint64), x.view(np.uint64))
