@@ -79,20 +79,24 @@ def encode(x, max_codes: int = MAX_CODES):
         raise ValueError(f"max_codes must be at most 65536 (uint16 codes), got {max_codes}")
     if not hasattr(x, "dtype") or x.dtype != jnp.float64 or x.size == 0:
         return x
-    flat = jnp.asarray(x).reshape(-1)
-    host_bits = np.asarray(flat).view(np.uint64)
+    x = jnp.asarray(x)
+    host_bits = np.asarray(x).reshape(-1).view(np.uint64)  # no copy on the CPU
     table = np.zeros(0, np.uint64)
-    for sample in _SAMPLES + (flat.size,):  # ever larger strided samples, the last one all entries
-        bits = host_bits[::max(1, flat.size // sample)]
-        codes, missed = _lookup(bits, flat if bits.size == flat.size else None, table)
-        if missed:
-            table = np.union1d(table, bits[table[np.asarray(codes)] != bits] if table.size else bits)
-            if table.size > max_codes:
-                return x
-    if missed:  # the last lookup added values: look every entry up again
-        codes, missed = _lookup(host_bits, flat, table)
+    for sample in _SAMPLES + (x.size, x.size):  # ever larger strided samples, then all entries
+        whole = sample >= x.size
+        bits = host_bits if whole else host_bits[::max(1, x.size // sample)]
+        codes, missed, any_missed = _lookup(bits, x if whole else None, table)
+        if not any_missed:
+            if whole:
+                break
+            continue
+        table = np.union1d(table, bits[np.asarray(missed).reshape(-1)])
+        if table.size > max_codes:
+            return x
+    else:  # pragma: no cover - the second pass over all entries finds every value in the table
+        return x
     code_dtype = np.uint8 if table.size <= 256 else np.uint16
-    if flat.size * np.dtype(code_dtype).itemsize + table.nbytes >= flat.nbytes:
+    if x.size * np.dtype(code_dtype).itemsize + table.nbytes >= x.nbytes:
         return x
     values = jnp.asarray(table.view(np.float64))
     return Coded(codes=jnp.asarray(codes, code_dtype).reshape(x.shape), table=values)
@@ -104,25 +108,27 @@ _MULTIPLIERS = (0x9E3779B97F4A7C15, 0xBF58476D1CE4E5B9, 0x94D049BB133111EB, 0xC2
 
 
 def _lookup(bits, flat, table_bits):
-    """``(codes (n,), missed)``: the index of each of the bit patterns ``bits (n,)`` (host) in
-    ``table_bits`` (sorted) and whether some entry is not in the table. Large arrays (``flat``,
-    the same entries as a device array) are looked up in one compiled pass through the hashes of
-    ``_hash_levels``, else by a binary search."""
+    """``(codes (n,), missed (n,), any missed)``: the index of each of the bit patterns ``bits
+    (n,)`` (host) in ``table_bits`` (sorted) and which are not in the table. Large arrays
+    (``flat``, the same entries as a device array) are looked up in one compiled pass through the
+    hashes of ``_hash_levels``, else by a binary search."""
     size = int(table_bits.size)
     if size == 0:
-        return np.zeros(bits.shape, np.int32), True
+        return None, np.ones(bits.shape, bool), True
     if flat is None or bits.size <= _HOST_LOOKUP:
+        bits = bits.reshape(-1)
         codes = np.minimum(np.searchsorted(table_bits, bits), size - 1)
-        return codes, bool(np.any(table_bits[codes] != bits))
+        missed = table_bits[codes] != bits
+        return codes, missed, bool(missed.any())
     levels = _hash_levels(table_bits)
     if levels is None:
-        codes, missed = _search_codes(flat, jnp.asarray(table_bits))
+        codes, missed, any_missed = _search_codes(flat, jnp.asarray(table_bits))
     else:
         mults, luts = zip(*levels)
         shift = 64 - int(np.log2(luts[0].size))
-        codes, missed = _hash_codes(flat, jnp.asarray(table_bits), tuple(jnp.asarray(lut) for lut in luts),
-                                    tuple(np.uint64(m) for m in mults), shift)
-    return codes, bool(missed)
+        codes, missed, any_missed = _hash_codes(flat, jnp.asarray(table_bits), tuple(jnp.asarray(lut) for lut in luts),
+                                                tuple(np.uint64(m) for m in mults), shift)
+    return codes, missed, bool(any_missed)
 
 
 def _hash_levels(table_bits):
@@ -156,14 +162,15 @@ def _hash_codes(flat, table_bits, luts, mults, shift: int):
         code = lut[((bits * mult) >> np.uint64(shift)).astype(jnp.int32)].astype(jnp.int32)
         hit = ~found & (table_bits[code] == bits)
         codes, found = jnp.where(hit, code, codes), found | hit
-    return codes, ~jnp.all(found)
+    return codes, ~found, ~jnp.all(found)
 
 
 @jax.jit
 def _search_codes(flat, table_bits):
     bits = jax.lax.bitcast_convert_type(flat, jnp.uint64)
     codes = jnp.minimum(jnp.searchsorted(table_bits, bits), table_bits.shape[0] - 1).astype(jnp.int32)
-    return codes, jnp.any(table_bits[codes] != bits)
+    missed = table_bits[codes] != bits
+    return codes, missed, jnp.any(missed)
 
 
 def decoded(x) -> jax.Array:
