@@ -3,6 +3,7 @@ that store their bounds coded give the values of the plain arrays."""
 
 import dataclasses
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -40,6 +41,9 @@ def test_encode_leaves_arrays_it_cannot_shrink():
     assert decoded(ints) is ints
     with pytest.raises(ValueError, match="at most 65536"):
         encode(many, max_codes=1 << 17)
+    few = jnp.asarray(np.repeat([0.25, 0.5], 5000))
+    assert isinstance(encode(few), Coded)
+    assert jax.jit(lambda a: encode(a) is a)(few)  # traced: left as it is
 
 
 def _drift(x, u, w):
