@@ -341,9 +341,20 @@ def inner_blocks(chunk_row, num_rows: int, slots_per_row: float, budget: int = B
     if block_rows >= num_rows:
         return 0, 0
     counts = np.bincount(np.asarray(chunk_row, np.int64), minlength=num_rows)[:num_rows]
-    start = np.concatenate([[0], np.cumsum(counts)])
+    return block_rows, most_per_block(counts, block_rows)
+
+
+def most_per_block(per_row, block_rows: int) -> int:
+    """The largest sum of ``per_row (R,)`` over a block of ``block_rows`` consecutive rows as
+    ``in_row_blocks`` cuts them (the last block is the last ``block_rows`` rows; 0: all rows):
+    the chunks a block reads, or the 2I-MDP's met (list, block) pairs."""
+    per_row = np.asarray(per_row, np.int64)
+    num_rows = per_row.size
+    if not 0 < block_rows < num_rows:
+        return int(per_row.sum())
+    start = np.concatenate([[0], np.cumsum(per_row)])
     first = np.minimum(np.arange(0, num_rows, block_rows), num_rows - block_rows)
-    return block_rows, int(np.max(start[first + block_rows] - start[first]))
+    return int(np.max(start[first + block_rows] - start[first]))
 
 
 def block_fields(chunk_row, num_rows: int, num_actions: int, slots_per_row: float, budget: int = BLOCK_SLOTS,

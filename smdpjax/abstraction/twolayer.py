@@ -55,7 +55,7 @@ from .clusters import index_dtype
 from .coded import decoded, encode, map_entries
 from .grid_clusters import GridClusters
 from .imdp import value_ranking
-from .imdp_compact import block_fields, chunk_lists, in_row_blocks
+from .imdp_compact import block_fields, chunk_lists, in_row_blocks, most_per_block
 
 
 def block_layout(grid, block) -> tuple[np.ndarray, np.ndarray]:
@@ -111,7 +111,8 @@ class TwoLayerIMDP(AbstractionMixin):
             (every action; one action per row), as ``CompactIMDP``'s (``imdp_compact.inner_blocks``).
         block_pairs: the most (row, action, met block) pairs any such block of rows has (every
             action; one action per row, whatever the action): the capacities are laid out for
-            that many pairs instead of ``T`` per list (``pair_counts``); 0: ``T`` per list.
+            that many pairs instead of ``T`` per list (``imdp_compact.most_per_block``); 0: ``T``
+            per list.
 
     ``lower``, ``upper`` ``(R, A, T, S)`` are the dense fine bounds (built on access).
     """
@@ -170,8 +171,8 @@ class TwoLayerIMDP(AbstractionMixin):
         slots = met_count * size + c_slot.shape[0] * c_slot.shape[2] / widths.size
         blocking = block_fields(row_j, int(widths.size), int(blocks.shape[1]), slots)
         met_per_list = np.asarray(jnp.sum(blocks <= num_blocks, axis=-1))  # (R, A), the sink block B included
-        pairs = (pair_counts(met_per_list.sum(1), blocking["block_rows"]),
-                 pair_counts(met_per_list.max(1), blocking["strategy_blocks"][0]))
+        pairs = (most_per_block(met_per_list.sum(1), blocking["block_rows"]),
+                 most_per_block(met_per_list.max(1), blocking["strategy_blocks"][0]))
         return cls(blocks=blocks.astype(index_dtype(num_blocks + 2)), block_lower=block_lower,
                    block_upper=block_upper,
                    chunk_slot=c_slot, chunk_upper=encode(c_upper), chunk_row=row_j, lower_slot=l_slot,
@@ -299,22 +300,6 @@ def _scatter_slots(dense, slot, value, lead_rows=None):
     flat = dense.reshape(shape[:-2] + (-1,))
     idx = _lead(slot.shape, lead_rows) + (slot.astype(jnp.int32),)
     return flat.at[idx].set(value, mode="drop").reshape(shape)
-
-
-def pair_counts(met_per_row, block_rows: int) -> int:
-    """The most (row, action, met block) pairs of any block of ``block_rows`` consecutive rows as
-    ``in_row_blocks`` cuts them (the last block is the last ``block_rows`` rows; 0: all rows).
-
-    Args:
-        met_per_row: ``(R,)`` blocks met per row (summed over the actions solved together).
-    """
-    met_per_row = np.asarray(met_per_row, np.int64)
-    num_rows = met_per_row.size
-    if not 0 < block_rows < num_rows:
-        return int(met_per_row.sum())
-    start = np.concatenate([[0], np.cumsum(met_per_row)])
-    first = np.minimum(np.arange(0, num_rows, block_rows), num_rows - block_rows)
-    return int(np.max(start[first + block_rows] - start[first]))
 
 
 # Largest count table ``(N + 1) x (B + 2)`` (entries) ``block_ranking`` builds; beyond it, or

@@ -162,17 +162,16 @@ def test_solver_same_with_count_table_or_binary_search(monkeypatch):
 
 @pytest.mark.parametrize("block_rows", [0, 1, 4, 5, 9])
 def test_pair_counts_cover_every_block_of_rows(block_rows):
-    """``pair_counts`` is the most met pairs any block of rows of ``in_row_blocks`` holds (the
-    last block overlapping the one before it): fewer would put two pairs on one row."""
-    from smdpjax.abstraction.imdp_compact import in_row_blocks
-    from smdpjax.abstraction.twolayer import pair_counts
+    """``most_per_block`` of the met pairs is the most any block of rows of ``in_row_blocks``
+    holds (the last block overlapping the one before it): fewer would put two pairs on one row."""
+    from smdpjax.abstraction.imdp_compact import in_row_blocks, most_per_block
 
     met = np.random.default_rng(block_rows).integers(0, 7, 23)
     # every row gets its block's total; every block gives the result at least one row
     block_total = lambda by_row, by_chunk, rows: jnp.broadcast_to(by_row[0].sum(), by_row[0].shape)
     totals = in_row_blocks(block_total, (jnp.asarray(met),), (jnp.zeros(23),), (0.0,), jnp.arange(23),
                            (block_rows, 1))
-    assert pair_counts(met, block_rows) == int(totals.max())
+    assert most_per_block(met, block_rows) == int(totals.max())
 
 
 def test_solver_same_with_either_prefix_sum(monkeypatch):
