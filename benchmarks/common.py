@@ -89,8 +89,38 @@ def binomial_tolerance(p, n, sigmas: float = 4.0):
 
 
 def environment() -> dict:
+    """What a timing depends on beyond the code: versions of JAX and of the numerical packages
+    (the MI-MDP's LP solvers among them), the processor and the number of CPUs."""
     return {"jax": jax.__version__, "backend": jax.default_backend(), "devices": [str(d) for d in jax.devices()],
-            "python": platform.python_version(), "machine": platform.machine(), "cpus": os.cpu_count()}
+            "python": platform.python_version(), "machine": platform.machine(), "cpus": os.cpu_count(),
+            "cpu_model": _cpu_model(), "packages": _package_versions(SOLVER_PACKAGES)}
+
+
+SOLVER_PACKAGES = ("jaxlib", "numpy", "scipy", "highspy", "clarabel", "cvxpy")
+
+
+def _package_versions(names) -> dict:
+    from importlib import metadata
+
+    versions = {}
+    for name in names:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = None
+    return versions
+
+
+def _cpu_model() -> str:
+    """The processor's name (``/proc/cpuinfo`` on Linux, else ``platform.processor()``)."""
+    try:
+        with open("/proc/cpuinfo") as info:
+            for line in info:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
 
 
 def write_json(path: Path, payload: dict) -> None:

@@ -138,13 +138,13 @@ class CompactIMDP(AbstractionMixin):
         num_rows = int(successors.shape[0])
         if num_rows == 0:
             raise ValueError("an IMDP needs at least one row (non-terminal cell)")
-        listed = successors < n_states
-        if bool(jnp.any(listed[..., 1:] & ~listed[..., :-1])):  # padding inside a list: listed entries first
+        gaps, widths, num_lower = list_stats(successors, lower, n_states)
+        if bool(gaps):  # padding inside a list: listed entries first
+            listed = successors < n_states
             front = jnp.argsort(~listed, axis=-1, stable=True)
             successors, lower, upper = (jnp.take_along_axis(a, front, axis=-1) for a in (successors, lower, upper))
-            listed = successors < n_states
-        widths = np.maximum(np.asarray(jnp.sum(listed, axis=-1).max(axis=1)), 1)  # (R,) widest list of each row
-        num_lower = int(jnp.max(jnp.sum((lower > 0) & listed, axis=-1), initial=0))
+        listed = successors < n_states
+        widths, num_lower = np.maximum(np.asarray(widths), 1), int(num_lower)  # (R,) widest list of each row
         c_succ, c_upper, chunk_row, l_succ, l_value = chunk_lists(successors.astype(index_dtype(n_states)), lower,
                                                                   upper, listed, widths, chunk, num_lower, n_states)
         slots = c_succ.shape[0] * c_succ.shape[2] / num_rows  # per row and action
@@ -253,6 +253,17 @@ class CompactIMDP(AbstractionMixin):
         return (f"IMDP(|S|={self.num_states}, rows={self.num_rows}, |A|={self.num_actions}, max successors="
                 f"{self.width}, chunks={self.num_chunks}x{self.chunk} slots, lower pairs per list={self.num_lower}, "
                 f"memory={self.nbytes / 1e6:.2f} MB)")
+
+
+@functools.partial(jax.jit, static_argnums=2)
+def list_stats(successors, lower, n_states: int):
+    """Of padded lists ``(R, A, K)`` (padding ``>= n_states``) in one pass: whether padding comes
+    before a listed entry anywhere, the widest list of each row ``(R,)`` and the most positive
+    lower bounds of any list."""
+    listed = successors < n_states
+    gaps = jnp.any(listed[..., 1:] & ~listed[..., :-1])
+    widths = jnp.sum(listed, axis=-1).max(axis=1)
+    return gaps, widths, jnp.max(jnp.sum((lower > 0) & listed, axis=-1), initial=0)
 
 
 def chunk_width(widths, overhead: int = CHUNK_OVERHEAD, candidates=CHUNK_WIDTHS) -> int:

@@ -55,7 +55,7 @@ from .clusters import index_dtype
 from .coded import decoded, encode, map_entries
 from .grid_clusters import GridClusters
 from .imdp import value_ranking
-from .imdp_compact import block_fields, chunk_lists, in_row_blocks, most_per_block
+from .imdp_compact import block_fields, chunk_lists, in_row_blocks, list_stats, most_per_block
 
 
 def block_layout(grid, block) -> tuple[np.ndarray, np.ndarray]:
@@ -162,9 +162,9 @@ class TwoLayerIMDP(AbstractionMixin):
         offset_of[cells_of[valid]] = np.nonzero(valid)[1]
         slot = _fine_slots(succ, blocks, jnp.asarray(block_of), jnp.asarray(offset_of), size)
         slot = slot.astype(index_dtype(met_count * size + 1))
-        listed = succ < sentinel
-        widths = np.maximum(np.asarray(jnp.sum(listed, axis=-1).max(axis=1)), 1)
-        num_lower = int(jnp.max(jnp.sum((lower > 0) & listed, axis=-1), initial=0))
+        listed = succ < sentinel  # region_bounds lists them first
+        _, widths, num_lower = list_stats(succ, lower, sentinel)
+        widths, num_lower = np.maximum(np.asarray(widths), 1), int(num_lower)
         c_slot, c_upper, row_j, l_slot, l_value = chunk_lists(slot, lower, upper, listed, widths, chunk, num_lower,
                                                               met_count * size)
         # per row and action: the met blocks' capacities (T S, laid out in every backup) and the entries

@@ -141,12 +141,12 @@ def test_quantized_widths_grow_by_at_most_half():
 
 def test_chunk_widths_do_not_change_the_lists(monkeypatch):
     """Chunks of 2 rows whose lists are cut to 2, 3, 4, 6, ... slots (not 32 and up) give the
-    same lists as one chunk."""
+    same lists as one chunk, the last chunk (one real row, one copy) cut to its real rows."""
     from smdpjax.abstraction import box_bounds
 
     cells, periodic, block = (9, 7), (False, True), (1, 1)
     rng = np.random.default_rng(5)
-    boxes = random_boxes(rng, cells, periodic, 6, 2, 12)
+    boxes = random_boxes(rng, cells, periodic, 7, 2, 12)
     prob = jnp.asarray(random_prob(rng, 12))
     whole = [np.asarray(t) for t in region_bounds(cells, periodic, boxes, prob, block)]
     monkeypatch.setattr(box_bounds, "ROWS_PER_CHUNK", 4)
@@ -154,5 +154,5 @@ def test_chunk_widths_do_not_change_the_lists(monkeypatch):
     chunked = [np.asarray(t) for t in region_bounds(cells, periodic, boxes, prob, block)]
     assert whole[0].shape[-1] > 2
     for a, b in zip(whole, chunked):
-        assert a.dtype == b.dtype
+        assert a.dtype == b.dtype and a.shape == b.shape == whole[0].shape and a.shape[0] == 7
         np.testing.assert_array_equal(a, b)

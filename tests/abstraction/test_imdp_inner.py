@@ -213,3 +213,30 @@ def test_inner_blocks_sizes():
     assert inner_blocks(chunk_row, 10, 16, budget=32) == (2, 6)
     assert inner_blocks(chunk_row, 10, 16, budget=48) == (3, 9)  # blocks 0-2, 3-5, 6-8, 7-9
     assert inner_blocks(chunk_row, 10, 16, budget=1) == (1, 3)  # at least one row a block
+
+
+def test_list_stats_against_numpy():
+    """``list_stats``: padding before a listed entry, each row's widest list, most positive lower
+    bounds per list; ``from_lists`` moves listed entries first only where padding came first."""
+    from smdpjax.abstraction.imdp_compact import CompactIMDP, list_stats
+
+    rng = np.random.default_rng(3)
+    n_states = 9
+    succ = rng.integers(0, n_states + 3, (5, 3, 6)).astype(np.int32)  # >= n_states: padding
+    lower = np.where(rng.random(succ.shape) < 0.3, 0.1, 0.0)
+    listed = succ < n_states
+    gaps, widths, num_lower = (np.asarray(x) for x in list_stats(jnp.asarray(succ), jnp.asarray(lower), n_states))
+    assert bool(gaps) == bool(np.any(listed[..., 1:] & ~listed[..., :-1]))
+    np.testing.assert_array_equal(widths, listed.sum(-1).max(1))
+    assert int(num_lower) == ((lower > 0) & listed).sum(-1).max()
+    front = np.argsort(~listed, axis=-1, kind="stable")
+    ordered = np.take_along_axis(succ, front, axis=-1)
+    assert not bool(list_stats(jnp.asarray(ordered), jnp.asarray(lower), n_states)[0])
+
+    upper = np.where(listed, 0.5, 0.0)
+    labels = np.zeros(n_states, np.int32)
+    gapped = CompactIMDP.from_lists(succ, lower * listed, upper, 0.0, np.arange(5), labels)
+    sorted_first = CompactIMDP.from_lists(ordered, np.take_along_axis(lower * listed, front, -1),
+                                          np.take_along_axis(upper, front, -1), 0.0, np.arange(5), labels)
+    for a, b in zip(jax.tree_util.tree_leaves(gapped), jax.tree_util.tree_leaves(sorted_first)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
