@@ -82,10 +82,20 @@ def default_block(clusters: GridClusters) -> tuple:
     """Block shape = the median extent of the reachable sets per dimension (a block then holds
     about one reachable set), at least 2 cells."""
     lengths = np.asarray(clusters.boxes.length).reshape(-1, clusters.boxes.length.shape[-1])
-    lengths = lengths[np.all(lengths > 0, axis=1)]
-    if lengths.size == 0:
-        return (2,) * clusters.boxes.length.shape[-1]
-    return tuple(int(max(2, round(v))) for v in np.median(lengths, axis=0))
+    valid = np.all(lengths > 0, axis=1)
+    if not valid.any():
+        return (2,) * lengths.shape[-1]
+    return tuple(int(max(2, round(_median_count(np.bincount(lengths[valid, d]))))) for d in range(lengths.shape[-1]))
+
+
+def _median_count(counts) -> float:
+    """``np.median`` of the integers that ``counts`` counts (``counts[v]`` copies of ``v``): the
+    mean of the two middle order statistics, found in the cumulative counts (``np.median`` of the
+    3-D unicycle's 8M boxes, a partition per column, took 0.5 s of the 2I-MDP build)."""
+    cumulative = np.cumsum(counts)
+    total = int(cumulative[-1])
+    low, high = (int(np.searchsorted(cumulative, k, side="right")) for k in ((total - 1) // 2, total // 2))
+    return (low + high) / 2
 
 
 @pytree_dataclass
@@ -278,8 +288,9 @@ def _fine_slots(succ, blocks, block_of, offset_of, size: int):
     sentinel = block_of.shape[0] - 1
     succ = succ.astype(jnp.int32)
     succ_block = block_of[jnp.minimum(succ, sentinel)]
-    t = jax.vmap(lambda b, q: jnp.searchsorted(b, q))(blocks.reshape(-1, blocks.shape[-1]),
-                                                      succ_block.reshape(-1, succ.shape[-1])).reshape(succ.shape)
+    # unrolled binary search: 1.07 -> 0.63 s on the 3-D unicycle's 22 410 x 10 lists of 212 slots
+    t = jax.vmap(lambda b, q: jnp.searchsorted(b, q, method="scan_unrolled"))(
+        blocks.reshape(-1, blocks.shape[-1]), succ_block.reshape(-1, succ.shape[-1])).reshape(succ.shape)
     t_count = blocks.shape[-1]
     return jnp.where(succ < sentinel, t * size + offset_of[jnp.minimum(succ, sentinel)], t_count * size)
 

@@ -239,3 +239,13 @@ def test_blocks_of_rows_equal_all_rows(name, rows_per_block, assert_same_q_value
     strategy = jnp.asarray(rng.integers(0, tl.num_actions, rows), jnp.int32)
     values = [jnp.asarray(rng.uniform(0, 1, grid.num_states)).at[-1].set(0.0) for _ in range(2)]
     assert_same_q_values(blocked, whole, values, strategy, atol=1e-15)
+
+
+@pytest.mark.parametrize("size", [1, 2, 7, 8, 1000])
+def test_median_of_counts_is_numpys_median(size):
+    from smdpjax.abstraction.twolayer import _median_count
+
+    rng = np.random.default_rng(size)
+    for _ in range(20):
+        values = rng.integers(1, 9, size)
+        assert _median_count(np.bincount(values)) == np.median(values)
