@@ -140,8 +140,7 @@ class CompactIMDP(AbstractionMixin):
             raise ValueError("an IMDP needs at least one row (non-terminal cell)")
         gaps, widths, num_lower = list_stats(successors, lower, n_states)
         if bool(gaps):  # padding inside a list: listed entries first
-            listed = successors < n_states
-            front = jnp.argsort(~listed, axis=-1, stable=True)
+            front = jnp.argsort(successors >= n_states, axis=-1, stable=True)
             successors, lower, upper = (jnp.take_along_axis(a, front, axis=-1) for a in (successors, lower, upper))
         listed = successors < n_states
         widths, num_lower = np.maximum(np.asarray(widths), 1), int(num_lower)  # (R,) widest list of each row
