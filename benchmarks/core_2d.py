@@ -44,7 +44,7 @@ def main(argv=None):
     parser.add_argument("--kinds", default="imdp,smdp",
                         help="comma-separated abstraction classes (imdp, 2imdp, mimdp, smdp); default: the quick pair")
     parser.add_argument("--cells", type=int, default=30, help="grid cells per dimension")
-    parser.add_argument("--lp-backend", default="clarabel", choices=("clarabel", "highs"),
+    parser.add_argument("--lp-backend", default="highs", choices=("clarabel", "highs"),
                         help="LP solver for the MI-MDP's multipliers")
     parser.add_argument("--initial", type=int, default=100, help="initial cells |S_0|")
     parser.add_argument("--trajectories", type=int, default=1000, help="Monte Carlo runs per initial cell")

@@ -76,6 +76,8 @@ CHILD = textwrap.dedent(r'''
     for kind in kinds:
         res = {}
         options = {"encoding": kind.split("-")[1]} if "-" in kind else {}
+        if kind == "mimdp":  # interior point: each LP solved from scratch, so the values do not
+            options["lp_backend"] = "clarabel"  # depend on which device solved what before (HiGHS's warm bases do)
         a = sj.abstract(additive if kind == "smdp-structured" else system, grid, noise, kind.split("-")[0],
                         mesh=mesh, **options)
         res["num_rows"] = a.num_rows

@@ -54,7 +54,7 @@ def abstract(system: System, state_grid: StateGrid, noise_grid: NoiseGrid | None
         state_grid: the phi-conservative state partition S (with reach/avoid labels).
         noise_grid: the partition C of W (not used by ``bounds="direct"``: pass it or ``None``).
         kind: ``"imdp"``, ``"2imdp"`` (option ``block``: coarse block shape in cells),
-            ``"mimdp"`` (options ``extra_clusters``, ``lp_backend="clarabel"|"highs"``,
+            ``"mimdp"`` (options ``extra_clusters``, ``lp_backend="highs"|"clarabel"``,
             ``screen_actions``, ``freeze_multipliers``, see ``MIMDP.from_clusters``) or ``"smdp"``
             (option ``encoding``: ``"boxes"``, ``"members"``, ``"structured"`` for a
             ``System.additive`` with one nonzero per row of B: O(R A K n) memory instead of

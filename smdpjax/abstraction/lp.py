@@ -82,7 +82,7 @@ class ClusterLPs:
         slots: ``(P, J, L)`` cluster members as slots into ``succ`` (padding ``>= K``).
         cluster_lower, cluster_upper: ``(P, J)`` cluster bounds.
         num_states: N + 1.
-        backend: ``"clarabel"`` or ``"highs"``.
+        backend: ``"highs"`` (default) or ``"clarabel"``.
         block_size: LPs stacked per Clarabel problem (``"clarabel"`` only).
         max_buckets: cap on the bucket variables of the unlisted states.
         settings: solver options (Clarabel settings attributes, or HiGHS option names).
@@ -104,7 +104,7 @@ class ClusterLPs:
     """
 
     def __init__(self, succ, lower, upper, rest, slots, cluster_lower, cluster_upper, num_states, *,
-                 backend: str = "clarabel", block_size: int = 1, max_buckets: int = 16,
+                 backend: str = "highs", block_size: int = 1, max_buckets: int = 16,
                  settings: dict | None = None, threads: int = 1, cache_size: int = 4,
                  max_cached_solvers: int = 2048, names=None, reprice: bool = True, reprice_gap: float = REPRICE_GAP):
         if backend not in BACKENDS:

@@ -126,7 +126,7 @@ class MIMDP(AbstractionMixin):
         return self.freeze_multipliers
 
     @classmethod
-    def from_clusters(cls, grid, clusters: GridClusters, extra_clusters=None, *, lp_backend: str = "clarabel",
+    def from_clusters(cls, grid, clusters: GridClusters, extra_clusters=None, *, lp_backend: str = "highs",
                       block_size: int = 1, max_buckets: int = 16, multiplier_cap: float = 4.0,
                       threads: int | None = None, solver_settings: dict | None = None,
                       screen_actions: bool = True, freeze_multipliers: bool = True,
@@ -140,9 +140,10 @@ class MIMDP(AbstractionMixin):
                 (cells ``0..N-1``, sink ``N``) per row and action, padded with ``N + 1`` (or any
                 id > N); a cluster that is all padding is ignored. Their bounds follow the same
                 formula as the informed clusters'.
-            lp_backend: ``"clarabel"`` (interior point) or ``"highs"`` (simplex warm-started from
-                the previous call's basis; needs ``highspy``). See ``lp``. Soundness does not
-                depend on the choice.
+            lp_backend: ``"highs"`` (the default: dual simplex warm-started from the previous
+                call's basis, bases re-priced without a solve where they stay optimal) or
+                ``"clarabel"`` (interior point, every LP solved from scratch: 9x slower on Table
+                1's row 35). See ``lp``. Soundness does not depend on the choice.
             block_size: LPs stacked block-diagonally into one Clarabel problem. 1 (no stacking)
                 was fastest on the 2-D unicycle at 12x12 and 30x30 (``benchmarks/mimdp_lp.py``):
                 a stacked problem needs as many interior-point iterations as its hardest block.

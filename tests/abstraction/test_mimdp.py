@@ -58,8 +58,9 @@ def small_clusters():
 
 @pytest.fixture(scope="module")
 def small(small_clusters):
+    """Clarabel's LPs (HiGHS is the default: ``small_highs``)."""
     grid, clusters, extra = small_clusters
-    return grid, clusters, MIMDP.from_clusters(grid, clusters, extra_clusters=extra), extra
+    return grid, clusters, MIMDP.from_clusters(grid, clusters, extra_clusters=extra, lp_backend="clarabel"), extra
 
 
 @pytest.fixture(scope="module")
@@ -390,6 +391,12 @@ def test_relaxation_is_stored_compactly_and_losslessly(small_clusters):
     assert mimdp.relaxation.nbytes < padded.nbytes
     v = jnp.asarray(np.random.default_rng(7).uniform(size=grid.num_states))
     np.testing.assert_allclose(q_values(mimdp.relaxation, v), q_values(padded, v), rtol=0, atol=1e-14)
+
+
+def test_highs_with_repriced_bases_is_the_default(small_clusters):
+    grid, clusters, _ = small_clusters
+    for mimdp in (MIMDP.from_clusters(grid, clusters), sj.abstraction.build("mimdp", grid, clusters)):
+        assert mimdp.lps.backend == "highs" and mimdp.lps.reprice
 
 
 def test_cluster_runs_hold_exactly_the_members():
