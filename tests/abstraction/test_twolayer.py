@@ -131,9 +131,12 @@ def test_prefix_sums_match_cumsum(size):
     assert (size <= _ONE_LEVEL_MAX) == (size in (1, 7, 16))
 
 
-def test_count_table_counts_each_blocks_cells_below_every_rank():
+@pytest.mark.parametrize("on_cpu", [True, False])  # a sequential pass, or a cumulative sum
+def test_count_table_counts_each_blocks_cells_below_every_rank(on_cpu, monkeypatch):
+    from smdpjax.abstraction import twolayer
     from smdpjax.abstraction.twolayer import block_ranking
 
+    monkeypatch.setattr(twolayer, "_on_cpu", lambda: on_cpu)
     grid = sj.StateGrid([0, 0], [1, 1], [7, 6])
     _, cells_of = block_layout(grid, (3, 2))  # partial blocks at the edge, padded
     w = jnp.asarray(np.random.default_rng(0).choice([0.0, 0.25, 1.0], grid.num_states))  # ties
