@@ -40,6 +40,18 @@ def timed(fn, repeats: int):
     return result, times
 
 
+def alternating(calls: dict, repeats: int) -> dict:
+    """``{name: [seconds]}``: every call of ``calls`` (``name -> fn``, compiled already) timed once
+    per round, ``max(1, repeats)`` rounds, so that all of them see the same machine load."""
+    times = {name: [] for name in calls}
+    for _ in range(max(1, repeats)):
+        for name, call in calls.items():
+            start = time.perf_counter()
+            jax.block_until_ready(call())
+            times[name].append(time.perf_counter() - start)
+    return times
+
+
 def median(xs):
     return float(statistics.median(xs))
 

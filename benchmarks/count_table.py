@@ -17,13 +17,12 @@ Reports the times and the largest difference of the values (none: the same count
 from __future__ import annotations
 
 import contextlib
-import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .common import argument_parser, median, row_clusters, write_result
+from .common import alternating, argument_parser, median, row_clusters, write_result
 
 
 @contextlib.contextmanager
@@ -58,12 +57,7 @@ def measure(row: int, repeats: int) -> dict:
             with _setting("COUNT_TABLE_READS", reads) if reads is not None else _setting("COUNT_TABLE_MAX", 0):
                 values[f"{kind}/{name}"] = np.asarray(backup(v))
             calls[f"{kind}/{name}"] = lambda f=backup: f(v)
-    times = {name: [] for name in calls}
-    for _ in range(max(1, repeats)):
-        for name, call in calls.items():
-            start = time.perf_counter()
-            jax.block_until_ready(call())
-            times[name].append(time.perf_counter() - start)
+    times = alternating(calls, repeats)
     same_table = bool(np.array_equal(values["table, sequential"], values["table, cumulative sum"]))
     diff = max(float(np.max(np.abs(values[f"{kind}/table"] - values[f"{kind}/binary search"])))
                for kind in ("every action", "strategy"))

@@ -20,13 +20,12 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .common import argument_parser, median, row_clusters, write_result
+from .common import alternating, argument_parser, median, row_clusters, write_result
 
 
 @contextlib.contextmanager
@@ -59,12 +58,8 @@ def measure(row: int, repeats: int) -> dict:
             values[name] = (np.asarray(every(abstraction, v)), np.asarray(fixed(abstraction, v, strategy)))
         calls[name] = {"every action": lambda a=abstraction, f=every: f(a, v),
                        "strategy": lambda a=abstraction, f=fixed: f(a, v, strategy)}
-    times = {(name, kind): [] for name in variants for kind in ("every action", "strategy")}
-    for _ in range(max(1, repeats)):
-        for (name, kind) in times:
-            start = time.perf_counter()
-            jax.block_until_ready(calls[name][kind]())
-            times[name, kind].append(time.perf_counter() - start)
+    times = alternating({(name, kind): calls[name][kind] for name in variants for kind in ("every action", "strategy")},
+                        repeats)
     diff = max(float(np.max(np.abs(a - b))) for a, b in zip(values["met pairs"], values["every slot"]))
     met = np.asarray(jnp.sum(pairs.blocks < pairs.cells_of.shape[0], -1))
     return dict(row=row, states=pairs.num_states, actions=pairs.num_actions, block_slots=pairs.num_block_slots,
