@@ -142,7 +142,7 @@ class MIMDP(AbstractionMixin):
                 formula as the informed clusters'.
             lp_backend: ``"highs"`` (the default: dual simplex warm-started from the previous
                 call's basis, bases re-priced without a solve where they stay optimal) or
-                ``"clarabel"`` (interior point, every LP solved from scratch: 9x slower on Table
+                ``"clarabel"`` (interior point, every LP solved from scratch: 6x slower on Table
                 1's row 35). See ``lp``. Soundness does not depend on the choice.
             block_size: LPs stacked block-diagonally into one Clarabel problem. 1 (no stacking)
                 was fastest on the 2-D unicycle at 12x12 and 30x30 (``benchmarks/mimdp_lp.py``):
