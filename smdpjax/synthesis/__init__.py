@@ -68,9 +68,11 @@ def synthesize(abstraction, horizon: int | None = None, tol: float = 1e-6, *, ob
         objective: ``"reach_avoid"`` (p^0 = 1 on reach cells) or ``"safety"`` (stay in the safe
             cells for ``horizon`` steps; p^0 = 1 on every safe cell).
         max_iterations: cap on each loop for unbounded horizons.
-        policy_sweeps: backups of the current greedy strategy alone after each greedy backup
-            of the optimization (modified policy iteration, see
-            ``value_iteration.optimize_lower``); ``None``: the number of actions, or
+        policy_sweeps: the most backups of the current greedy strategy alone after each greedy
+            backup of the optimization (modified policy iteration, see
+            ``value_iteration.optimize_lower``; they stop once one changes no value by more than
+            ``value_iteration.SWEEP_STOP`` times the greedy backup's change, except the MI-MDP's,
+            which always run); ``None``: the number of actions, or
             ``value_iteration.FROZEN_SWEEPS`` for the MI-MDP, whose sweeps iterate frozen LP
             multipliers instead of solving LPs (``MIMDP.freeze``); ``0``: plain
             value iteration. Sound for any value; only the speed and where the optimization

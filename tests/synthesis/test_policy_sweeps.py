@@ -31,7 +31,7 @@ def test_sweeps_stay_below_the_optimum_and_save_greedy_backups(problem, kind):
     greedy = {}
     for sweeps in (0, 1, 8, 40):
         v, policy, backups, delta = value_iteration.optimize_lower(abstraction, v0, 1e-6, 100_000,
-                                                                   policy_sweeps=sweeps)
+                                                                   policy_sweeps=sweeps, sweep_stop=0.0)
         v = np.asarray(v)
         assert float(delta) <= 1e-6
         assert np.all(v[rows] <= optimum[rows] + slack), sweeps  # every iterate is a lower bound
@@ -46,6 +46,31 @@ def test_sweeps_stay_below_the_optimum_and_save_greedy_backups(problem, kind):
         assert np.all(np.asarray(value.lower)[rows] <= optimum[rows] + slack)
     assert greedy[8] * 2 < greedy[0]  # the point of it: far fewer maximizations over all actions
     assert greedy[40] <= greedy[8]
+
+
+@pytest.mark.parametrize("kind", ["imdp", "2imdp"])
+def test_sweeps_stop_once_they_change_little_and_are_counted(problem, kind):
+    """With ``sweep_stop`` an iteration's sweeps end at the first one that changes no value by
+    more than that fraction of the greedy backup's change: fewer backups than running them all,
+    each one counted, and the same optimum within the tolerance."""
+    abstraction = sj.abstract(*problem, kind)
+    v0 = abstraction.initial_values()
+    rows = np.asarray(abstraction.rows)
+    optimum = np.asarray(value_iteration.optimize_lower(abstraction, v0, 1e-14, 100_000, policy_sweeps=0)[0])
+    slack = float(abstraction.rounding_per_backup()) * 20_000
+    every, _, every_backups, _ = value_iteration.optimize_lower(abstraction, v0, 1e-6, 100_000, policy_sweeps=40,
+                                                                sweep_stop=0.0)
+    v, _, backups, delta = value_iteration.optimize_lower(abstraction, v0, 1e-6, 100_000, policy_sweeps=40,
+                                                          sweep_stop=0.25)
+    v = np.asarray(v)
+    assert float(delta) <= 1e-6 and int(backups) < int(every_backups)
+    assert (int(every_backups) + 40) % 41 == 0 and (int(backups) + 40) % 41 != 0  # sweeps cut short
+    assert np.all(v[rows] <= optimum[rows] + slack) and np.max(optimum[rows] - v[rows]) < 1e-3
+    assert np.max(np.abs(v[rows] - np.asarray(every)[rows])) < 1e-3
+    # counted one by one: stopping after the first sweep (an infinite ratio) is one sweep each time
+    cut = value_iteration.optimize_lower(abstraction, v0, 1e-6, 100_000, policy_sweeps=40, sweep_stop=np.inf)
+    one = value_iteration.optimize_lower(abstraction, v0, 1e-6, 100_000, policy_sweeps=1, sweep_stop=0.0)
+    assert int(cut[2]) == int(one[2]) and np.array_equal(np.asarray(cut[0]), np.asarray(one[0]))
 
 
 def test_synthesize_default_sweeps_match_plain_value_iteration_within_tolerance(problem):
