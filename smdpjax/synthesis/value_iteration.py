@@ -55,9 +55,9 @@ SWEEPS_PER_FREEZE = 8
 
 
 # The strategy sweeps after a greedy backup stop once a sweep changes no value by more than
-# SWEEP_STOP times that backup's change. On Table 1 (one cold synthesis each, side by
-# side with 0, i.e. every sweep): 3-D unicycle row 18 119.2 -> 76.5 s, row 26 72.1 -> 45.3 s; 2-D
-# rows 9 / 10 / 13 / 14 28.2 / 30.0 / 52.3 / 45.6 -> 28.8 / 30.8 / 48.4 / 51.6 s (docs/performance.md).
+# SWEEP_STOP times that backup's change. Table 1's rows, one cold synthesis each against every
+# sweep run: the 3-D unicycle's 2I-MDP rows 1.48-1.57x faster (row 18 112.1 -> 75.7 s), the 2-D
+# rows 0.87-1.09x (row 14 43.9 -> 50.3 s: more greedy backups); docs/performance.md.
 SWEEP_STOP = 0.25
 
 
