@@ -81,11 +81,23 @@ def block_layout(grid, block) -> tuple[np.ndarray, np.ndarray]:
 def default_block(clusters: GridClusters) -> tuple:
     """Block shape = the median extent of the reachable sets per dimension (a block then holds
     about one reachable set), at least 2 cells."""
-    lengths = np.asarray(clusters.boxes.length).reshape(-1, clusters.boxes.length.shape[-1])
-    valid = np.all(lengths > 0, axis=1)
-    if not valid.any():
+    lengths = jnp.asarray(clusters.boxes.length)
+    lengths = lengths.reshape(-1, lengths.shape[-1])
+    most = int(jnp.max(lengths, initial=0))
+    counts = np.array(_extent_counts(lengths, 1 << (most + 1).bit_length()))
+    counts[:, 0] = 0  # boxes empty in some dimension (counted there in every dimension)
+    if not counts.any():
         return (2,) * lengths.shape[-1]
-    return tuple(int(max(2, round(_median_count(np.bincount(lengths[valid, d]))))) for d in range(lengths.shape[-1]))
+    return tuple(int(max(2, round(_median_count(c)))) for c in counts)
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _extent_counts(lengths, bins: int):
+    """``(n, bins)`` per dimension how many boxes of ``lengths (M, n)`` have each extent, the
+    boxes empty in any dimension counted as extent 0 (in one pass: numpy's mask and bincounts
+    took 0.7 s of the 3-D unicycle's 2I-MDP build, 14M boxes)."""
+    empty = jnp.any(lengths <= 0, axis=1)
+    return jnp.stack([jnp.bincount(jnp.where(empty, 0, lengths[:, d]), length=bins) for d in range(lengths.shape[1])])
 
 
 def _median_count(counts) -> float:

@@ -244,6 +244,24 @@ def test_blocks_of_rows_equal_all_rows(name, rows_per_block, assert_same_q_value
     assert_same_q_values(blocked, whole, values, strategy, atol=1e-15)
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_default_block_is_the_median_extent_of_the_nonempty_boxes(seed):
+    from smdpjax.abstraction.clusters import IndexBoxes
+    from smdpjax.abstraction.twolayer import default_block
+
+    rng = np.random.default_rng(seed)
+    length = rng.integers(1, [4, 9, 40], (30, 2, 5, 3)).astype(np.int32)
+    length[rng.random(length.shape[:-1]) < 0.3, rng.integers(0, 3)] = 0  # empty boxes do not count
+    boxes = IndexBoxes(start=jnp.zeros_like(length), length=jnp.asarray(length), sink=jnp.zeros(length.shape[:-1], bool))
+    flat = length.reshape(-1, 3)
+    kept = flat[np.all(flat > 0, axis=1)]
+    expected = tuple(int(max(2, round(np.median(kept[:, d])))) for d in range(3))
+    assert default_block(type("Clusters", (), {"boxes": boxes})()) == expected
+    nothing = IndexBoxes(start=jnp.zeros((2, 1, 1, 3), jnp.int32), length=jnp.zeros((2, 1, 1, 3), jnp.int32),
+                         sink=jnp.ones((2, 1, 1), bool))
+    assert default_block(type("Clusters", (), {"boxes": nothing})()) == (2, 2, 2)
+
+
 @pytest.mark.parametrize("size", [1, 2, 7, 8, 1000])
 def test_median_of_counts_is_numpys_median(size):
     from smdpjax.abstraction.twolayer import _median_count
