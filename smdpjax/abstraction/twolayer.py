@@ -503,18 +503,18 @@ def _two_layer_sorted(w, ranking, blocks, block_lower, block_upper, cap, pair, p
         at = flat_prefix[pair * size + jnp.maximum(count_of - 1, 0)]
         return jnp.where(count_of > 0, at, 0.0)
 
-    def fill_cost(amount):  # pour `amount (..., T)` into each block's cells in increasing rank
+    def fill_cost(amount):  # pour `amount (2, ..., T)` into each block's cells in increasing rank
         amount = jnp.maximum(amount, 0.0)  # a rounding below 0 pours nothing
-        by_pair = jnp.zeros(count).at[jnp.where(met, pair, count)].set(amount, mode="drop")
-        full = jnp.sum(cum_cap <= by_pair[:, None], -1)  # (P,) cells filled up
-        w_next = jnp.take_along_axis(w_i, jnp.minimum(full, size - 1)[:, None], -1)[:, 0]
+        by_pair = jnp.zeros((2, count)).at[:, jnp.where(met, pair, count)].set(amount, mode="drop")
+        full = jnp.sum(cum_cap <= by_pair[..., None], -1)  # (2, P) cells filled up: one pass over both
+        w_next = jnp.take_along_axis(jnp.broadcast_to(w_i, (2,) + w_i.shape), jnp.minimum(full, size - 1)[..., None],
+                                     -1)[..., 0]
         at = jnp.arange(count) * size + jnp.maximum(full - 1, 0)
         poured = jnp.where(full > 0, flat_cap[at], 0.0)
         partial = jnp.where(full < size, by_pair - poured, 0.0)
-        return (jnp.where(full > 0, flat_cost[at], 0.0) + partial * w_next)[pair]
+        return (jnp.where(full > 0, flat_cost[at], 0.0) + partial * w_next)[:, pair]
 
-    f_floor = base + fill_cost(floor - sum_l)
-    f_ceil = base + fill_cost(ceil - sum_l)
+    f_floor, f_ceil = base + fill_cost(jnp.stack([floor - sum_l, ceil - sum_l]))
     met_min_rank = jnp.where(met, sorted_rank[block_row, 0], n_states)
 
     if "count" in ranking:  # one read of the count table per block slot
