@@ -508,9 +508,9 @@ def _two_layer_sorted(w, ranking, blocks, block_lower, block_upper, cap, pair, p
         amount = jnp.maximum(amount, 0.0)  # a rounding below 0 pours nothing
         by_pair = jnp.zeros((2, count)).at[:, jnp.where(met, pair, count)].set(amount, mode="drop")
         full = jnp.sum(cum_cap <= by_pair[..., None], -1)  # (2, P) cells filled up: one pass over both
-        w_next = jnp.take_along_axis(jnp.broadcast_to(w_i, (2,) + w_i.shape), jnp.minimum(full, size - 1)[..., None],
-                                     -1)[..., 0]
-        at = jnp.arange(count) * size + jnp.maximum(full - 1, 0)
+        first = jnp.arange(count) * size
+        w_next = w_i.reshape(-1)[first + jnp.minimum(full, size - 1)]
+        at = first + jnp.maximum(full - 1, 0)
         poured = jnp.where(full > 0, flat_cap[at], 0.0)
         partial = jnp.where(full < size, by_pair - poured, 0.0)
         return (jnp.where(full > 0, flat_cost[at], 0.0) + partial * w_next)[:, pair]
