@@ -156,3 +156,32 @@ def test_chunk_widths_do_not_change_the_lists(monkeypatch):
     for a, b in zip(whole, chunked):
         assert a.dtype == b.dtype and a.shape == b.shape == whole[0].shape and a.shape[0] == 7
         np.testing.assert_array_equal(a, b)
+
+
+def test_rows_per_chunk_fits_small_models():
+    """A model with fewer rows than a chunk holds gets the least power of two that holds them,
+    never more than ``ROWS_PER_CHUNK // actions``."""
+    from smdpjax.abstraction.box_bounds import ROWS_PER_CHUNK, _rows_per_chunk
+
+    assert _rows_per_chunk(144, 1) == 256 and _rows_per_chunk(1, 1) == 1 and _rows_per_chunk(2, 3) == 2
+    assert _rows_per_chunk(256, 1) == 256 and _rows_per_chunk(257, 1) == 512
+    assert _rows_per_chunk(10 ** 6, 1) == ROWS_PER_CHUNK and _rows_per_chunk(10 ** 6, 8) == ROWS_PER_CHUNK // 8
+    assert _rows_per_chunk(5, 8) == 8 and _rows_per_chunk(300, 8) == ROWS_PER_CHUNK // 8
+
+
+def test_rows_per_loop_step_do_not_change_the_bounds(monkeypatch):
+    """The difference arrays built one row per loop step or ``MAP_BATCH`` (here 3, which does not
+    divide the 7 rows) at a time: the same lists and bounds, bit for bit."""
+    from smdpjax.abstraction import box_bounds
+
+    cells, periodic, block = (6, 5, 4), (False, True, False), (1, 1, 1)
+    rng = np.random.default_rng(11)
+    boxes = random_boxes(rng, cells, periodic, 7, 1, 9)
+    prob = jnp.asarray(random_prob(rng, 9))
+    results = []
+    for batch in (1, 3):
+        monkeypatch.setattr(box_bounds, "MAP_BATCH", batch)
+        box_bounds._window_bounds.clear_cache()  # MAP_BATCH is read when the function is traced
+        results.append([np.asarray(t) for t in region_bounds(cells, periodic, boxes, prob, block)])
+    for a, b in zip(*results):
+        np.testing.assert_array_equal(a, b)
