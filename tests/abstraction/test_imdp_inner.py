@@ -154,6 +154,23 @@ def test_chunk_width_minimizes_slots_plus_overhead():
         chunk_layout(widths, 0)
 
 
+def test_wide_lists_are_cut_into_explicit_column_chunks():
+    """Lists that fit in ``_EXPLICIT_COLUMNS`` slots keep ``chunk_width``'s choice (one chunk per
+    row where the widths are equal); wider ones are cut into chunks of at most
+    ``WIDE_LIST_CHUNK``, never one chunk per row, by the same cost over the narrow candidates."""
+    from smdpjax.abstraction.imdp_compact import (_EXPLICIT_COLUMNS, WIDE_LIST_CHUNK, chunk_width,
+                                                  list_chunk_width)
+
+    assert WIDE_LIST_CHUNK <= _EXPLICIT_COLUMNS
+    assert list_chunk_width(np.full(50, 36)) == 36 == chunk_width(np.full(50, 36))
+    assert list_chunk_width(np.full(50, _EXPLICIT_COLUMNS)) == _EXPLICIT_COLUMNS
+    wide = np.full(50, 1156)  # chunk_width: one chunk per row (no padding at all)
+    assert chunk_width(wide) == 1156 and list_chunk_width(wide) == WIDE_LIST_CHUNK
+    # by hand, cost sum ceil(w / W) (W + 8) over W in 4..32 for widths 49 and 10: W = 12 costs
+    # 5 * 20 + 1 * 20 = 120, as does W = 32 (2 * 40 + 40); the first of the cheapest is taken
+    assert list_chunk_width(np.array([49, 10])) == 12
+
+
 def test_abstract_imdp_is_compact_and_synthesizes_as_padded():
     system = sj.System(lambda x, u, w: x + 0.1 * (jnp.array([jnp.cos(u[0]), jnp.sin(u[0])]) + w),
                        actions=(np.arange(4) * np.pi / 2)[:, None], noise=sj.Gaussian([0, 0], [0.5, 0.5]))
