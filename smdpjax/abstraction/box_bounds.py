@@ -47,7 +47,7 @@ FRACTION_BITS = 61
 _WIDTH_QUANTUM = 32
 # Rows whose difference arrays are built side by side in each step of the loop over rows: one row
 # per step paid the loop's overhead 2 048 times on the 3-D temperature model (window_bounds 15.7 ->
-# 8.8 ms at 16), 16 rows keep the buffers in cache (3-D unicycle, 224 100 rows: 5.9 -> 5.1 s).
+# 8.8 ms at 16), 16 rows keep the buffers in cache (3-D unicycle, 224 100 lists: 5.9 -> 5.1 s).
 MAP_BATCH = 16
 
 
@@ -123,7 +123,8 @@ def _rows_per_chunk(rows: int, actions: int) -> int:
 @functools.partial(jax.jit, static_argnums=2)
 def _chunk_rows(boxes: IndexBoxes, start, size: int) -> IndexBoxes:
     """Rows ``start .. start + size - 1`` of ``(R, A, C)`` boxes as ``(size * A, C)`` boxes, rows
-    past the last one copies of it (one compiled program for every chunk, not a gather per field)."""
+    past the last one copies of it (one compiled program for every chunk, not a gather per field;
+    ``size == R``: all rows, ``start`` 0)."""
     rows = boxes.start.shape[0]
     if size == rows:
         return jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), boxes)
