@@ -85,13 +85,15 @@ def region_bounds(cells, periodic, boxes: IndexBoxes, prob, block=None):
     r, a, c, _ = boxes.start.shape
     step = _rows_per_chunk(r, a)
 
+    single = _chunk_rows(boxes, 0, step) if step >= r else None  # one chunk: sliced once
+
     def chunks():  # sliced lazily (a copy of all boxes at once can be gigabytes), the last one
-        for s in range(0, r, step):  # padded with copies of its last row: one compiled shape
+        if single is not None:  # padded with copies of its last row: one compiled shape
+            yield single
+            return
+        for s in range(0, r, step):
             yield _chunk_rows(boxes, s, step)
 
-    if step >= r:  # one chunk: sliced once
-        only = next(chunks())
-        chunks = lambda: iter((only,))
     windows = [_windows(geometry, part) for part in chunks()]
     size = tuple(int(v) for v in np.max(np.concatenate([np.asarray(e) for _, e in windows]), axis=0))
     size = tuple(max(v, 1) for v in size)

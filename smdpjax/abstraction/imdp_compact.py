@@ -292,10 +292,9 @@ def list_chunk_width(widths) -> int:
     """The IMDP's chunk width: ``chunk_width`` where every list fits in ``_EXPLICIT_COLUMNS``
     slots, else ``chunk_width`` over the candidates up to ``WIDE_LIST_CHUNK`` (not one chunk per
     row), so that every chunk is summed as explicit columns."""
-    w = np.maximum(np.asarray(widths, np.int64).reshape(-1), 1)
-    if int(w.max(initial=1)) <= _EXPLICIT_COLUMNS:
-        return chunk_width(w)
-    return chunk_width(w, candidates=tuple(c for c in CHUNK_WIDTHS if c <= WIDE_LIST_CHUNK), one_per_row=False)
+    if int(np.max(widths, initial=1)) <= _EXPLICIT_COLUMNS:
+        return chunk_width(widths)
+    return chunk_width(widths, candidates=tuple(c for c in CHUNK_WIDTHS if c <= WIDE_LIST_CHUNK), one_per_row=False)
 
 
 def chunk_layout(widths, chunk: int | None = None):
