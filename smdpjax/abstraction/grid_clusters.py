@@ -32,12 +32,15 @@ class GridClusters:
         boxes: ``IndexBoxes`` with leading shape ``(R, A, C_b)``.
         prob: ``(C_b,)`` P_W of the bounded noise cells.
         prob_rest: P_W of the remainder cell (0 for bounded noise); its cluster is all of S.
+        noise_shape: ``(K_1, ..., K_m)`` the bounded noise cells as a C-order product grid
+            (``NoiseGrid.shape``), or ``None`` (Lemma 1's sums then take no product form).
     """
 
     rows: np.ndarray
     boxes: IndexBoxes
     prob: jax.Array
     prob_rest: jax.Array
+    noise_shape: tuple | None = None
 
 
 def validate(system: System, grid: StateGrid, noise_grid: NoiseGrid) -> np.ndarray:
@@ -113,11 +116,11 @@ def compute_grid_clusters(system: System, grid: StateGrid, noise_grid: NoiseGrid
         _, pieces, _, _ = structured_clusters(system, grid, noise_grid, method=method, policy=policy, progress=progress,
                                               mesh=mesh)
         return GridClusters(rows=rows, boxes=expanded_boxes(pieces, np.dtype(box_dtype).name), prob=prob,
-                            prob_rest=prob_rest)
+                            prob_rest=prob_rest, noise_shape=noise_grid.shape)
     decode = functools.partial(_decode, dtype=np.dtype(box_dtype).name)
     boxes = snapped_boxes(system, grid, rows, actions, w_lo, w_hi, decode, method=method, progress=progress,
                           mesh=mesh)
-    return GridClusters(rows=rows, boxes=boxes, prob=prob, prob_rest=prob_rest)
+    return GridClusters(rows=rows, boxes=boxes, prob=prob, prob_rest=prob_rest, noise_shape=noise_grid.shape)
 
 
 def snapped_boxes(system: System, grid: StateGrid, rows: np.ndarray, actions, w_lo, w_hi, decode, *,

@@ -57,7 +57,8 @@ class IMDP(AbstractionMixin):
     def from_clusters(cls, grid, clusters: GridClusters) -> "IMDP":
         """Lemma 1 from the clusters' index boxes (``box_bounds.region_bounds``: exact sums,
         rounded outward); successors in increasing order."""
-        succ, lower, upper = region_bounds(grid.cells, grid.periodic, clusters.boxes, clusters.prob)
+        succ, lower, upper = region_bounds(grid.cells, grid.periodic, clusters.boxes, clusters.prob,
+                                           noise_shape=clusters.noise_shape)
         succ = succ.astype(index_dtype(grid.num_states))
         rest = jnp.asarray(clusters.prob_rest)
         return cls(successors=succ, lower=lower, upper=jnp.where(succ <= grid.num_cells, upper + rest, 0.0),

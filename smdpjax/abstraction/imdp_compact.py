@@ -119,7 +119,8 @@ class CompactIMDP(AbstractionMixin):
         ``list_chunk_width`` of the lists' widths)."""
         from .box_bounds import region_bounds
 
-        succ, lower, upper = region_bounds(grid.cells, grid.periodic, clusters.boxes, clusters.prob)
+        succ, lower, upper = region_bounds(grid.cells, grid.periodic, clusters.boxes, clusters.prob,
+                                           noise_shape=clusters.noise_shape)
         rest = jnp.asarray(clusters.prob_rest)
         upper = jnp.where(succ <= grid.num_cells, upper + rest, 0.0)
         return cls.from_lists(succ, lower, upper, rest, clusters.rows, grid.state_labels, chunk=chunk)

@@ -168,14 +168,15 @@ class TwoLayerIMDP(AbstractionMixin):
         block_of, cells_of = block_layout(grid, block)
         num_blocks = cells_of.shape[0] - 1
         blocks, block_lower, block_upper = region_bounds(grid.cells, grid.periodic, clusters.boxes, clusters.prob,
-                                                         block=block)
+                                                         block=block, noise_shape=clusters.noise_shape)
         rest = jnp.asarray(clusters.prob_rest)
         met = blocks <= num_blocks
         block_upper = jnp.where(met, block_upper + rest, 0.0)
         met_count = max(1, int(jnp.max(jnp.sum(met, axis=-1), initial=1)))
         blocks, block_lower, block_upper = blocks[..., :met_count], block_lower[..., :met_count], \
             block_upper[..., :met_count]
-        succ, lower, upper = region_bounds(grid.cells, grid.periodic, clusters.boxes, clusters.prob)
+        succ, lower, upper = region_bounds(grid.cells, grid.periodic, clusters.boxes, clusters.prob,
+                                           noise_shape=clusters.noise_shape)
         sentinel = grid.num_states  # N + 1 (N cells and the sink)
         upper = jnp.where(succ < sentinel, upper + rest, 0.0)
         size = cells_of.shape[1]

@@ -185,3 +185,114 @@ def test_rows_per_loop_step_do_not_change_the_bounds(monkeypatch):
         results.append([np.asarray(t) for t in region_bounds(cells, periodic, boxes, prob, block)])
     for a, b in zip(*results):
         np.testing.assert_array_equal(a, b)
+
+
+def factored_boxes(rng, cells, periodic, rows, noise_shape, axes):
+    """Random boxes of ``(rows, 1, prod(noise_shape))`` whose dimension d depends on noise axis
+    ``axes[d]`` alone (-1: on none), with sink flags that are an "or" of per-axis flags."""
+    n, m = len(cells), len(noise_shape)
+    grid = np.stack(np.unravel_index(np.arange(int(np.prod(noise_shape))), noise_shape), -1)  # (C, m)
+    pieces = random_boxes(rng, cells, periodic, rows, 1, max(noise_shape))  # per (row, axis index) ranges
+    start, length = np.array(pieces.start), np.array(pieces.length)
+    start[..., 1, :] = np.mod(start[..., 0, :] + 1, cells)  # the first two pieces differ in every dimension
+    length[..., 1, :] = np.maximum(length[..., 0, :], 1)
+    length = np.where(np.asarray(periodic), length, np.minimum(length, np.asarray(cells) - start))  # in the grid
+    g = [rng.random((rows, 1, k)) < 0.2 for k in noise_shape]
+    for d, k in enumerate(axes):  # a dimension that misses the grid sends the box to the sink
+        if k >= 0:
+            g[k] |= length[..., :noise_shape[k], d] == 0
+        else:
+            length[..., 0, d] = np.maximum(length[..., 0, d], 1)
+    pick = lambda x, d: x[..., grid[:, axes[d]] if axes[d] >= 0 else np.zeros(len(grid), int), d]
+    start = np.stack([pick(start, d) for d in range(n)], -1)
+    length = np.stack([pick(length, d) for d in range(n)], -1)
+    sink = np.zeros(start.shape[:-1], bool)
+    for k in range(m):
+        sink |= g[k][..., grid[:, k]]
+    return IndexBoxes(start=jnp.asarray(start, jnp.int32), length=jnp.asarray(length, jnp.int32),
+                      sink=jnp.asarray(sink))
+
+
+FACTORED = {  # cells, periodic, block, noise shape, noise axis of each dimension
+    "2d": ((6, 5), (False, False), (1, 1), (3, 4), (0, 1)),
+    "2d_periodic_blocks": ((7, 8), (True, False), (2, 3), (4, 2), (1, 0)),
+    "3d_shared_and_none": ((5, 4, 6), (False, True, False), (1, 1, 1), (3, 2), (0, 0, -1)),
+    "3d_axis_unused": ((4, 5, 6), (False, False, True), (1, 2, 1), (2, 3, 2), (2, -1, 0)),
+}
+
+
+@pytest.fixture
+def factored_calls(monkeypatch):
+    """Every chunk may take the product form (whatever its size); counts the chunks that do."""
+    from smdpjax.abstraction import box_bounds
+
+    calls = []
+    product_form = box_bounds._factored_window_bounds
+
+    def counted(*args):
+        calls.append(args[-1])
+        return product_form(*args)
+
+    monkeypatch.setattr(box_bounds, "FACTOR_MIN_CORNERS", 0)
+    monkeypatch.setattr(box_bounds, "_factored_window_bounds", counted)
+    return calls
+
+
+@pytest.mark.parametrize("case", sorted(FACTORED))
+def test_factored_sums_equal_the_difference_arrays(case, factored_calls):
+    """Boxes whose dimensions each follow one noise axis: the product form is taken (the axes are
+    recognised) and gives the difference arrays' lists and bounds bit for bit, which are the exact
+    sums rounded outward."""
+    from smdpjax.abstraction.box_bounds import _chunk_rows, _factor_axes, _noise_dependence
+
+    cells, periodic, block, noise_shape, axes = FACTORED[case]
+    rng = np.random.default_rng(sorted(FACTORED).index(case))
+    rows, clusters = 9, int(np.prod(noise_shape))
+    boxes = factored_boxes(rng, cells, periodic, rows, noise_shape, axes)
+    prob = random_prob(rng, clusters)
+    assert _factor_axes(*_noise_dependence(_chunk_rows(boxes, 0, rows), noise_shape)) == axes
+    generic = [np.asarray(t) for t in region_bounds(cells, periodic, boxes, jnp.asarray(prob), block)]
+    factored = [np.asarray(t) for t in region_bounds(cells, periodic, boxes, jnp.asarray(prob), block,
+                                                     noise_shape=noise_shape)]
+    assert factored_calls == [axes]
+    for a, b in zip(generic, factored):
+        assert a.dtype == b.dtype and a.shape == b.shape
+        np.testing.assert_array_equal(a, b)
+    ids, lower, upper = factored
+    quantum = Fraction(clusters, 2 ** FRACTION_BITS)
+    for r in range(rows):
+        want, sink_region = exact_bounds(cells, periodic, block, *(np.asarray(x)[r, 0] for x in
+                                                                  (boxes.start, boxes.length, boxes.sink)), prob)
+        listed = ids[r, 0][ids[r, 0] <= sink_region]
+        assert set(listed.tolist()) == set(want)
+        for k, region in enumerate(listed):
+            lo, up = want[int(region)]
+            got_lo, got_up = Fraction(float(lower[r, 0, k])), Fraction(float(upper[r, 0, k]))
+            assert got_lo <= lo and lo - got_lo <= quantum + Fraction(np.spacing(float(lo)))
+            assert got_up >= up and got_up - up <= quantum + Fraction(np.spacing(float(up)))
+
+
+def test_boxes_that_do_not_factor_take_the_difference_arrays(factored_calls):
+    """One box moved, or one sink flag that is no "or" of per-axis flags: no product form, and
+    the bounds are still the difference arrays'."""
+    from smdpjax.abstraction.box_bounds import _chunk_rows, _factor_axes, _noise_dependence
+
+    cells, periodic, block, noise_shape, axes = FACTORED["2d"]
+    rng = np.random.default_rng(3)
+    boxes = factored_boxes(rng, cells, periodic, 4, noise_shape, axes)
+    prob = jnp.asarray(random_prob(rng, 12))
+    sink = np.array(boxes.sink)
+    sink[1, 0] = False
+    sink[1, 0, 5] = True  # cell (1, 1) alone
+    start = np.array(boxes.start)
+    start[2, 0, 7, 0] = (start[2, 0, 7, 0] + 1) % cells[0]
+    for changed in (IndexBoxes(start=boxes.start, length=boxes.length, sink=jnp.asarray(sink)),
+                    IndexBoxes(start=jnp.asarray(start), length=boxes.length, sink=boxes.sink)):
+        assert _factor_axes(*_noise_dependence(_chunk_rows(changed, 0, 4), noise_shape)) is None
+        generic = region_bounds(cells, periodic, changed, prob, block)
+        factored = region_bounds(cells, periodic, changed, prob, block, noise_shape=noise_shape)
+        for a, b in zip(generic, factored):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert factored_calls == []
+    with pytest.raises(ValueError, match="noise_shape"):
+        region_bounds(cells, periodic, boxes, prob, block, noise_shape=(3, 3))
