@@ -20,6 +20,13 @@ for ``lower``; integer sums are exact; the totals are converted back to float64 
 Every bound is thus on the safe side of the exact Lemma 1 value, off by at most C 2^-61 plus one
 ulp (2e-15 at C = 4225).
 
+Product form: where dimension d of every box of a chunk depends on one noise axis alone (diagonal
+additive or multiplicative noise on a product noise grid) and the sink flags are an "or" over the
+axes, ``upper = sum_c P_W(c) prod_d 1(range_d(c_{axis(d)}) holds h_d)`` is one contraction of the
+table of P_W with per-dimension indicators (``_factored_window_bounds``), O(prod K * H) per row
+instead of C 2^n scatters. The same fixed-point integers are summed, so the bounds are the same
+bit for bit; the structure is checked on the boxes themselves (``_noise_dependence``).
+
 The window of a row starts at the first region its boxes meet in each dimension; on a periodic
 dimension it starts just after the longest gap in the row's coverage, so no box wraps inside it,
 unless the row's boxes cover the whole circle: then a wrapping range [lo, m) + [0, end - m) adds

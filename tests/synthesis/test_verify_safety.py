@@ -76,3 +76,24 @@ def test_abstracting_only_the_table_action_gives_the_same_bounds(setup):
         sj.verify(abstractions["smdp"], horizon=3, objective="safety")
     with pytest.raises(ValueError, match="policy entries"):
         sj.abstract(system, grid, noise, "smdp", policy=np.full(grid.num_cells, 4))
+
+
+def test_a_settled_bound_is_not_backed_up_again(setup):
+    """A stationary strategy's bounds once a backup leaves them unchanged (the 2I-MDP's and
+    SMDP's optimistic bounds here settle at once): the same values as the same strategy given
+    per time step, which backs up every step."""
+    from smdpjax.synthesis import value_iteration
+
+    _, grid, table, abstractions = setup
+    settled = 0
+    for kind, ab in abstractions.items():
+        rows_policy = jnp.asarray(table[np.asarray(ab.rows)], jnp.int32)
+        v0 = ab.initial_values("safety")
+        lo, up, policy = value_iteration.finite_horizon(ab, v0, HORIZON, rows_policy)
+        lo_t, up_t, _ = value_iteration.finite_horizon(ab, v0, HORIZON, jnp.tile(rows_policy, (HORIZON, 1)))
+        np.testing.assert_allclose(np.asarray(lo), np.asarray(lo_t), rtol=0, atol=1e-14)
+        np.testing.assert_allclose(np.asarray(up), np.asarray(up_t), rtol=0, atol=1e-14)
+        assert policy.shape == (HORIZON, ab.rows.shape[0]) and np.all(np.asarray(policy) == np.asarray(rows_policy))
+        once = ab.q_values(v0, "max", rows_policy)
+        settled += bool(jnp.all(v0.at[ab.rows].set(once) == v0))
+    assert settled >= 1  # the skip is exercised
