@@ -575,11 +575,8 @@ def _two_layer_sorted(w, ranking, blocks, block_lower, block_upper, cap, pair, p
 _MATMUL_PREFIX_MAX = 128
 # Up to this many entries, one product with a triangular matrix; longer (up to
 # ``_MATMUL_PREFIX_MAX``), two levels of them: blocks of ``q ~ sqrt(S)`` entries, then the
-# blocks' totals (about ``2 sqrt(S)`` instead of ``S`` multiply-adds per entry). One backup of
-# Table 1's 2I-MDP rows, one level against two: 3-D unicycle (S = 18) 178-183 against 201 ms,
-# 3-room temperature (S = 27) 9.3-9.6 against 10.5-10.8 ms; 4-room (S = 81) 853-887 against
-# 776-794 ms.
-_ONE_LEVEL_MAX = 32
+# blocks' totals (about ``2 sqrt(S)`` instead of ``S`` multiply-adds per entry).
+_ONE_LEVEL_MAX = 16
 
 
 def _triangle(size, dtype, strict=False):
