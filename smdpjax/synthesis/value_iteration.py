@@ -299,9 +299,11 @@ def finite_horizon(abstraction, v0, horizon: int, policy=None, with_upper: bool 
     if horizon == 0:
         return v0, v0, jnp.zeros((0, *rows.shape), jnp.int32)
     if steps is not None and policy.ndim == 1:
-        # A stationary strategy: once a backup leaves a bound unchanged bit for bit, every later
-        # backup would too (the same program on the same input), so it is not run again. The
-        # 2I-MDP's optimistic bound of the temperature rows settles after 0-3 of 15 steps.
+        # A stationary strategy: once a backup leaves a bound v unchanged bit for bit, it is not
+        # run again. v is then a bound at every later step too (v = T~(v) <= T(v) + e for the
+        # lower bound, T monotone and non-expansive; the rounding allowance still counts every
+        # step), and a deterministic backup would return v again anyway. The 2I-MDP's optimistic
+        # bound of the temperature rows settles after 0-3 of 15 steps.
         def settling(v, adversary, settled):
             new = jax.lax.cond(settled, lambda: v, lambda: _set_rows(v, rows, abstraction.q_values(v, adversary, policy)))
             return new, settled | jnp.all(new == v)
