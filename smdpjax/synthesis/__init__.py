@@ -28,21 +28,24 @@ def _check(abstraction, horizon, tol, objective):
 
 
 def _finish(abstraction, lower, upper, policy_rows, lower_opt, iterations, eval_iterations,
-            converged, change, horizon, objective):
-    """Widen by the rounding allowance, expand the row policy to states, measure the gap."""
+            converged, change, horizon, objective, upper_extra: float = 0.0):
+    """Widen by the rounding allowance (``upper`` by ``upper_extra`` more), expand the row policy
+    to states, measure the gap."""
     allowance = abstraction.rounding_per_backup() * (int(iterations) + int(eval_iterations))
     lower, upper, lower_opt, policy, gap = _finish_arrays(abstraction.labels, abstraction.rows, lower,
-                                                          upper, lower_opt, policy_rows, allowance)
+                                                          upper, lower_opt, policy_rows, allowance,
+                                                          allowance + upper_extra)
     return Solution(lower=lower, upper=upper, policy=policy, lower_optimal=lower_opt,
                     iterations=int(iterations), evaluation_iterations=int(eval_iterations),
                     converged=bool(converged), upper_change=float(change), gap=float(gap),
-                    rounding_allowance=float(allowance), horizon=horizon, objective=objective)
+                    rounding_allowance=float(allowance + upper_extra), horizon=horizon, objective=objective)
 
 
 @jax.jit
-def _finish_arrays(labels, rows, lower, upper, lower_opt, policy_rows, allowance):
+def _finish_arrays(labels, rows, lower, upper, lower_opt, policy_rows, allowance, upper_allowance):
     nonterminal = labels == NONTERMINAL
-    widen = lambda v, sign: jnp.where(nonterminal, jnp.clip(v + sign * allowance, 0.0, 1.0), v)
+    widen = lambda v, sign: jnp.where(nonterminal, jnp.clip(v + sign * (allowance if sign < 0 else upper_allowance),
+                                                            0.0, 1.0), v)
     n_states = labels.shape[0]
     if policy_rows.ndim == 1:
         policy = jnp.zeros(n_states, jnp.int32).at[rows].set(policy_rows)
@@ -141,7 +144,8 @@ def verify(abstraction, policy=None, horizon: int | None = None, tol: float = 1e
     rows_policy = policy[..., np.asarray(abstraction.rows)].astype(np.int32)  # jit moves it to the device
     if horizon is not None:
         lo, up, pol = value_iteration.finite_horizon(abstraction, v0, int(horizon), rows_policy)
-        return _finish(abstraction, lo, up, pol, lo, horizon, 0, True, 0.0, int(horizon), objective)
+        extra = value_iteration.COMPLEMENT_ROUNDING * int(horizon) if rows_policy.ndim == 1 else 0.0
+        return _finish(abstraction, lo, up, pol, lo, horizon, 0, True, 0.0, int(horizon), objective, extra)
     lo, up, k, (converged, change) = _evaluate_both(abstraction, v0, rows_policy, tol, max_iterations)
     return _finish(abstraction, lo, up, rows_policy, lo, 0, k, converged, change, None, objective)
 

@@ -31,8 +31,10 @@ class Solution:
         upper_change: sup-norm change of the last upper-bound iteration.
         gap: ``max(upper - lower)`` over the non-terminal states: how wide the certified interval
             still is (abstraction error plus whatever the tolerance left).
-        rounding_allowance: bound on accumulated float64 rounding, already subtracted from
-            ``lower`` and added to ``upper`` on non-terminal states.
+        rounding_allowance: bound on accumulated float64 rounding, already added to ``upper``
+            on non-terminal states (and subtracted from ``lower``, less the
+            ``value_iteration.COMPLEMENT_ROUNDING`` per step that only the upper bound of a
+            stationary strategy over a finite horizon carries).
     """
 
     lower: jax.Array

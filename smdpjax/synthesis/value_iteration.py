@@ -277,6 +277,12 @@ def warm_start(abstraction, guess, v0, slack, tol):
     return start, certified, spent
 
 
+# Rounding of one optimistic backup of a stationary strategy over a finite horizon beyond the
+# abstraction's own (``rounding_per_backup``): ``1 - v`` and ``1 - min`` round once each, by at most
+# 2^-53 for values in [0, 1].
+COMPLEMENT_ROUNDING = 2.0 ** -52
+
+
 @functools.partial(jax.jit, static_argnames=("horizon", "with_upper"))
 def finite_horizon(abstraction, v0, horizon: int, policy=None, with_upper: bool = True):
     """T = ``horizon`` backups. ``policy``: ``None`` (optimized, time-dependent), ``(R,)``
@@ -286,7 +292,9 @@ def finite_horizon(abstraction, v0, horizon: int, policy=None, with_upper: bool 
     (``t = 0`` is the first step, i.e. the last backup). ``with_upper=False`` (optimized
     strategy only) skips the maximizing adversary's backups and returns ``top_values`` as
     ``upper``, the trivial bound. With a stationary ``policy``, a bound that one backup leaves
-    unchanged bit for bit is not backed up again (the result is the same).
+    unchanged bit for bit is not backed up again (the result is the same), and the optimistic
+    backup is ``1 - min <gamma, 1 - v>``, whose rounding exceeds ``rounding_per_backup`` by
+    ``COMPLEMENT_ROUNDING`` per backup (the caller widens ``upper`` by that too).
     """
     rows = abstraction.rows
     if policy is None:
@@ -304,8 +312,16 @@ def finite_horizon(abstraction, v0, horizon: int, policy=None, with_upper: bool 
         # lower bound, T monotone and non-expansive; the rounding allowance still counts every
         # step), and a deterministic backup would return v again anyway. The 2I-MDP's optimistic
         # bound of the temperature rows settles after 0-3 of 15 steps.
+        def backup(v, adversary):
+            if adversary == "min":
+                return _set_rows(v, rows, abstraction.q_values(v, "min", policy))
+            # max_gamma <gamma, v> = 1 - min_gamma <gamma, 1 - v> (every gamma sums to 1): exactly 1
+            # where a row can keep all its mass on states of value 1, where the sum of the masses
+            # times 1 rounds to 1 +- 1 ulp and would never settle (COMPLEMENT_ROUNDING)
+            return _set_rows(v, rows, 1.0 - abstraction.q_values(1.0 - v, "min", policy))
+
         def settling(v, adversary, settled):
-            new = jax.lax.cond(settled, lambda: v, lambda: _set_rows(v, rows, abstraction.q_values(v, adversary, policy)))
+            new = jax.lax.cond(settled, lambda: v, lambda: backup(v, adversary))
             return new, settled | jnp.all(new == v)
 
         def step(carry, _):

@@ -97,3 +97,27 @@ def test_a_settled_bound_is_not_backed_up_again(setup):
         once = ab.q_values(v0, "max", rows_policy)
         settled += bool(jnp.all(v0.at[ab.rows].set(once) == v0))
     assert settled >= 1  # the skip is exercised
+
+
+def test_optimistic_bound_as_a_complement_and_its_rounding(setup):
+    """A stationary strategy's optimistic backup is ``1 - min <gamma, 1 - v>``: within the two
+    backups' rounding bounds of the maximizing one, exactly 1 where the mass can stay on safe
+    states, and its two extra roundings are added to the upper bound's allowance only."""
+    from smdpjax.synthesis import value_iteration
+
+    _, grid, table, abstractions = setup
+    for kind, ab in abstractions.items():
+        rows_policy = jnp.asarray(table[np.asarray(ab.rows)], jnp.int32)
+        v0 = ab.initial_values("safety")
+        _, up, _ = value_iteration.finite_horizon(ab, v0, HORIZON, rows_policy)
+        _, up_max, _ = value_iteration.finite_horizon(ab, v0, HORIZON, jnp.tile(rows_policy, (HORIZON, 1)))
+        per_step = 2 * ab.rounding_per_backup() + value_iteration.COMPLEMENT_ROUNDING
+        assert np.max(np.abs(np.asarray(up) - np.asarray(up_max))) <= HORIZON * per_step
+        once = np.asarray(1.0 - ab.q_values(1.0 - v0, "min", rows_policy))
+        assert np.all(once <= 1.0) and np.sum(once == 1.0) > 0.9 * once.size
+        stationary = sj.verify(ab, table, horizon=HORIZON, objective="safety")
+        per_time = sj.verify(ab, np.tile(table, (HORIZON, 1)), horizon=HORIZON, objective="safety")
+        extra = HORIZON * value_iteration.COMPLEMENT_ROUNDING
+        assert stationary.rounding_allowance == pytest.approx(per_time.rounding_allowance + extra, rel=1e-12, abs=0)
+        assert extra > 1e-6 * per_time.rounding_allowance  # the test can tell the two apart
+        np.testing.assert_array_equal(np.asarray(stationary.lower), np.asarray(per_time.lower))
