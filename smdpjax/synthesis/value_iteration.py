@@ -310,8 +310,8 @@ def finite_horizon(abstraction, v0, horizon: int, policy=None, with_upper: bool 
         # A stationary strategy: once a backup leaves a bound v unchanged bit for bit, it is not
         # run again. v is then a bound at every later step too (v = T~(v) <= T(v) + e for the
         # lower bound, T monotone and non-expansive; the rounding allowance still counts every
-        # step), and a deterministic backup would return v again anyway. The 2I-MDP's optimistic
-        # bound of the temperature rows settles after 0-3 of 15 steps.
+        # step), and a deterministic backup would return v again anyway. The optimistic bounds of
+        # the temperature rows settle after one of 15 steps.
         def backup(v, adversary):
             if adversary == "min":
                 return _set_rows(v, rows, abstraction.q_values(v, "min", policy))
