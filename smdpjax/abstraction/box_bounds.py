@@ -117,12 +117,14 @@ def region_bounds(cells, periodic, boxes: IndexBoxes, prob, block=None, noise_sh
         for s in range(0, r, step):
             yield _chunk_rows(boxes, s, step)
 
-    windows = [_windows(geometry, part) for part in chunks()]
     factor = noise_shape is not None and step * a * c * 2 ** n >= FACTOR_MIN_CORNERS
     if factor:  # the first rows first: a model whose boxes do not factor shows it there
         sample = _chunk_rows(boxes, 0, min(r, FACTOR_SAMPLE_ROWS))
         factor = _factor_axes(*_noise_dependence(sample, noise_shape)) is not None
-    dependence = [_noise_dependence(part, noise_shape) if factor else None for part in chunks()]
+    windows, dependence = [], []
+    for part in chunks():
+        windows.append(_windows(geometry, part))
+        dependence.append(_noise_dependence(part, noise_shape) if factor else None)
     size = tuple(int(v) for v in np.max(np.concatenate([np.asarray(e) for _, e in windows]), axis=0))
     size = tuple(max(v, 1) for v in size)
     pieces, widths = [], []
@@ -400,8 +402,15 @@ def _noise_dependence(boxes: IndexBoxes, noise_shape):
         varies.append(jnp.stack([jnp.any((start != first(start, k)) | (length != first(length, k)))
                                  for k in range(m)]))
     sink = boxes.sink.reshape(shape)
-    per_axis = [jnp.all(sink, axis=tuple(1 + j for j in range(m) if j != k), keepdims=True) for k in range(m)]
+    per_axis = _sink_per_axis(sink, keepdims=True)
     return jnp.stack(varies), jnp.all(functools.reduce(jnp.logical_or, per_axis) == sink)
+
+
+def _sink_per_axis(sink, keepdims: bool = False):
+    """Per noise axis k of ``sink (rows, K_1, ..., K_m)``: the flags set for every noise cell of a
+    row with a given index along k, ``(rows, K_k)`` (or broadcastable with ``keepdims``)."""
+    m = sink.ndim - 1
+    return [jnp.all(sink, axis=tuple(1 + j for j in range(m) if j != k), keepdims=keepdims) for k in range(m)]
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1, 5, 6))
@@ -437,8 +446,7 @@ def _factored_window_bounds(geometry, size, boxes: IndexBoxes, anchor, prob, noi
         singles.append(((count == 1) & (x == 0)).astype(jnp.int64))
         nonempty.append((along(boxes.length[..., d], k) > 0).astype(jnp.int64))
         terms.append("r" + (noise_letters[k] if k >= 0 else ""))
-    sink = boxes.sink.reshape(shape)
-    no_sink = [(~jnp.all(sink, axis=tuple(1 + j for j in range(m) if j != k))).astype(jnp.int64) for k in range(m)]
+    no_sink = [(~g).astype(jnp.int64) for g in _sink_per_axis(boxes.sink.reshape(shape))]
     p_up = jnp.maximum(_fixed_point(prob, True), 1).reshape(noise_shape)  # as ``_window_bounds``
     p_lo = _fixed_point(prob, False).reshape(noise_shape)
     window = "r" + window_letters
