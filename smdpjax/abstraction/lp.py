@@ -142,6 +142,7 @@ class ClusterLPs:
         # replaced) and its Clarabel solver are used under a lock
         self._lp_locks = tuple(threading.Lock() for _ in range(_LP_LOCK_STRIPES))
         self._executor = None
+        self._constants = None
         self.stats = collections.Counter()
         self.names = None if names is None else np.asarray(names)
         self.failures = collections.deque(maxlen=100)
@@ -289,17 +290,41 @@ class ClusterLPs:
     def _highs_model(self, p, cost):
         """LP ``p`` with costs ``cost`` as the arrays of ``Highs.passModel``: bounds on the
         variables, ranged rows (equality first), a row-wise 0/1 matrix. Assembled at every call
-        from the compact per-LP data: a cached ``HighsLp`` per LP held ~200 KB each on the
-        4-room temperature row (20 736 LPs of up to 256 clusters x 81 members: 4 GB), and setting
-        its fields converted the arrays element by element (1.7 ms per LP)."""
-        lp_data = self._lps[p]
-        n, k = lp_data["caps"].size, lp_data["cluster"].size
-        index = np.concatenate([np.arange(n, dtype=np.int32), lp_data["var"].astype(np.int32)])
-        start = np.concatenate([[0], n + lp_data["ptr"]]).astype(np.int32)
-        bounds = lambda side: np.concatenate([[lp_data["free_mass"]], lp_data[side]])
-        return (n, 1 + k, index.size, _HIGHS_ROWWISE, _HIGHS_MINIMIZE, 0.0, np.ascontiguousarray(cost, np.float64),
-                np.zeros(n), lp_data["caps"], bounds("lo"), bounds("hi"), start, index, np.ones(index.size),
-                np.zeros(n, np.int32))  # integrality: all continuous (an empty array is read past its end)
+        from the flat table, the constant parts sliced from shared arrays: a cached ``HighsLp``
+        per LP held ~200 KB each on the 4-room temperature row (20 736 LPs of up to 256 clusters
+        x 81 members: 4 GB), and setting its fields converted the arrays element by element
+        (1.7 ms per LP). This runs under the GIL beside the other thread's solves, so it is kept
+        to a few slices (~15 us per LP of the 2-D unicycle, against ~40 us through ``table[p]``)."""
+        t, p = self._lps, int(p)
+        v0, v1 = t.var_start[p], t.var_start[p + 1]
+        r0, r1 = t.row_start[p], t.row_start[p + 1]
+        m0, m1 = t.member_start[r0], t.member_start[r1]
+        n, k, nnz = int(v1 - v0), int(r1 - r0), int(v1 - v0 + m1 - m0)
+        const = self._model_constants(max(n, nnz))
+        index = np.empty(nnz, np.int32)
+        index[:n] = const["arange"][:n]
+        index[n:] = t.var[m0:m1]
+        start = np.empty(k + 2, np.int32)
+        start[0] = 0
+        np.subtract(t.member_start[r0:r1 + 1], m0 - n, out=start[1:], casting="unsafe")
+        lo, hi = np.empty(k + 1), np.empty(k + 1)
+        lo[0] = hi[0] = t.free_mass[p]
+        lo[1:], hi[1:] = t.lo[r0:r1], t.hi[r0:r1]
+        return (n, 1 + k, nnz, _HIGHS_ROWWISE, _HIGHS_MINIMIZE, 0.0, np.ascontiguousarray(cost, np.float64),
+                const["zeros"][:n], t.caps[v0:v1], lo, hi, start, index, const["ones"][:nnz],
+                const["integrality"][:n])  # integrality: all continuous (an empty array is read past its end)
+
+    def _model_constants(self, size: int) -> dict:
+        """Read-only ``arange``, ``zeros``, ``ones`` and integrality codes of at least ``size`` entries."""
+        const = self._constants
+        if const is None or const["ones"].size < size:
+            size = max(size, 2 * (0 if const is None else const["ones"].size))
+            const = dict(arange=np.arange(size, dtype=np.int32), zeros=np.zeros(size), ones=np.ones(size),
+                         integrality=np.zeros(size, np.int32))
+            for array in const.values():
+                array.flags.writeable = False
+            self._constants = const  # replaced whole, so a reader always sees one consistent dict
+        return const
 
     def _highs_solver(self):
         """The calling thread's ``Highs`` instance (one model at a time; bases are kept per LP)."""
@@ -332,14 +357,15 @@ class ClusterLPs:
             if self.reprice:
                 record, lock = self._record(direction), self._record_locks[direction]
                 if status in _OPTIMAL:
-                    record.record(self._lps, p, solution.col_value, solution.col_dual, row_dual, h.getBasis, lock)
+                    record.record(self._lps, p, solution, row_dual, h.getBasis, lock)
                 else:
                     with lock:
                         record.forget(p)
         dual = row_dual[1:]
-        cluster = self._lps[p]["cluster"]
-        out[2 * cluster] = np.maximum(dual, 0.0)
-        out[2 * cluster + 1] = np.maximum(-dual, 0.0)
+        table = self._lps
+        cluster = table.cluster[table.row_start[int(p)]:table.row_start[int(p) + 1]]
+        out[2 * cluster] = dual  # both signs; ``multipliers`` clips each call's out at 0 once
+        out[2 * cluster + 1] = -dual
         return status
 
     def _record(self, direction) -> BasisRecord:
@@ -464,7 +490,10 @@ class ClusterLPs:
         # each task returns [(position in ids of the (first) LP it solved, solver status), ...]
         if self.backend == "highs":
             def solve(i):
-                return self._solve_highs(ids[i], direction, costs[i, self._lps[ids[i]]["cost_src"]], flat[i])
+                p = ids[i]
+                return self._solve_highs(p, direction, costs[i, cost_src[var_start[p]:var_start[p + 1]]], flat[i])
+
+            cost_src, var_start = self._lps.cost_src, self._lps.var_start
 
             if self.reprice:  # a chunk of LPs per task: re-priced, the rest solved (chunks run concurrently)
                 def run(part):
@@ -497,6 +526,7 @@ class ClusterLPs:
         share = 1 if np.unique(ids).size != ids.size else max(1, min(self.threads, len(tasks)))
         parts = self._pool().map(lambda t: [r for task in tasks[t::share] for r in run(task)], range(share))
         solved = sorted(r for part in parts for r in part)
+        np.maximum(lam, 0.0, out=lam)  # lambda+ = max(dual, 0), lambda- = max(-dual, 0)
         statuses = [status for _, status in solved]
         self.stats.update(statuses)
         self._report([ids[i] for i, _ in solved], statuses)

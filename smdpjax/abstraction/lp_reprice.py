@@ -56,8 +56,10 @@ class BasisRecord:
         self.eq_active = np.zeros(num_lps, bool)
         self.known = np.zeros(num_lps, bool)
 
-    def record(self, table, p: int, x, col_dual, row_dual, basis, lock=None) -> None:
-        """Keep LP ``p``'s optimal ``x`` and its basis: the basic variables and the nonbasic rows.
+    def record(self, table, p: int, solution, row_dual, basis, lock=None) -> None:
+        """Keep LP ``p``'s optimal vertex (``solution.col_value``) and its basis: the basic
+        variables and the nonbasic rows. ``solution``'s columns are read only for a basis small
+        enough to re-price (highspy copies them out at every read).
 
         Read from the duals where they tell (the solver sets the reduced cost of a basic variable
         and the dual of a basic row to exactly 0); where a zero dual leaves it open (a degenerate
@@ -73,8 +75,8 @@ class BasisRecord:
             with lock or contextlib.nullcontext():
                 self.known[p] = False
             return
-        x = np.asarray(x, np.float64)
-        basic = np.asarray(col_dual, np.float64) == 0.0
+        x = np.asarray(solution.col_value, np.float64)
+        basic = np.asarray(solution.col_dual, np.float64) == 0.0
         if basic.sum() != nonbasic_rows.sum():
             status = basis()
             basic = np.fromiter(map(int, status.col_status), np.int8, v1 - v0) == _BASIC

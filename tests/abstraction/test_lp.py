@@ -82,3 +82,28 @@ def test_lp_table_concatenates_blocks_with_empty_lps():
         for key in want:
             np.testing.assert_array_equal(np.asarray(got[key]), np.asarray(want[key]), err_msg=key)
     assert both[3]["caps"].size == 0 and both[3]["cluster"].size == 0 and both[4]["ptr"].tolist() == [0, 4]
+
+
+@pytest.mark.parametrize("rest", [0.0, 0.2])
+def test_highs_model_arrays_are_the_lps_rows_written_out(rest, random_lps):
+    """``_highs_model`` slices the flat table (and shared constant arrays); its arrays are LP
+    ``p``'s written out from ``table[p]``: ``n`` variables in [0, caps], the equality row at
+    ``free_mass``, then each cluster row's members, row-wise with unit coefficients."""
+    lps = ClusterLPs(*random_lps(3, rest), backend="highs")
+    rng = np.random.default_rng(0)
+    for p, lp in enumerate(lps._lps):
+        n, k = lp["caps"].size, lp["cluster"].size
+        cost = rng.random(n)
+        want = (n, 1 + k, n + lp["var"].size, 2, 1, 0.0, cost, np.zeros(n), lp["caps"],
+                np.concatenate([[lp["free_mass"]], lp["lo"]]), np.concatenate([[lp["free_mass"]], lp["hi"]]),
+                np.concatenate([[0], n + lp["ptr"]]).astype(np.int32),
+                np.concatenate([np.arange(n), lp["var"]]).astype(np.int32), np.ones(n + lp["var"].size),
+                np.zeros(n, np.int32))
+        got = lps._highs_model(p, cost)
+        assert len(got) == len(want)
+        for i, (g, w) in enumerate(zip(got, want)):
+            g, w = np.asarray(g), np.asarray(w)
+            assert g.dtype == w.dtype, (p, i)
+            np.testing.assert_array_equal(g, w, err_msg=f"LP {p} argument {i}")
+    big = lps._model_constants(4 * lps._model_constants(1)["ones"].size)  # grows, stays read-only
+    assert not big["ones"].flags.writeable and big["arange"][-1] == big["arange"].size - 1

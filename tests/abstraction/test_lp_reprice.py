@@ -165,8 +165,8 @@ def test_degenerate_solves_record_the_solvers_basis(lps_and_costs, monkeypatch):
     read = []
     record = lp_reprice.BasisRecord.record
 
-    def counted(self, table, p, x, col_dual, row_dual, basis, lock=None):
-        return record(self, table, p, x, col_dual, row_dual, lambda: read.append(p) or basis(), lock)
+    def counted(self, table, p, solution, row_dual, basis, lock=None):
+        return record(self, table, p, solution, row_dual, lambda: read.append(p) or basis(), lock)
 
     monkeypatch.setattr(lp_reprice.BasisRecord, "record", counted)
     solved = lps.multipliers(w, ids).reshape(ids.size, -1)
