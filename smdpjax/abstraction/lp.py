@@ -294,7 +294,7 @@ class ClusterLPs:
         per LP held ~200 KB each on the 4-room temperature row (20 736 LPs of up to 256 clusters
         x 81 members: 4 GB), and setting its fields converted the arrays element by element
         (1.7 ms per LP). This runs under the GIL beside the other thread's solves, so it is kept
-        to a few slices (~15 us per LP of the 2-D unicycle, against ~40 us through ``table[p]``)."""
+        to a few slices (26-29 us per LP of the 2-D unicycle, against 40-45 us through ``table[p]``)."""
         t, p = self._lps, int(p)
         v0, v1 = t.var_start[p], t.var_start[p + 1]
         r0, r1 = t.row_start[p], t.row_start[p + 1]
