@@ -489,11 +489,11 @@ class ClusterLPs:
 
         # each task returns [(position in ids of the (first) LP it solved, solver status), ...]
         if self.backend == "highs":
+            cost_src, var_start = self._lps.cost_src, self._lps.var_start
+
             def solve(i):
                 p = ids[i]
                 return self._solve_highs(p, direction, costs[i, cost_src[var_start[p]:var_start[p + 1]]], flat[i])
-
-            cost_src, var_start = self._lps.cost_src, self._lps.var_start
 
             if self.reprice:  # a chunk of LPs per task: re-priced, the rest solved (chunks run concurrently)
                 def run(part):
