@@ -153,6 +153,30 @@ def test_reprice_handles_singular_and_oversized_systems(lps_and_costs):
     np.testing.assert_array_equal(np.delete(again, p), np.delete(accepted, p))
 
 
+def test_a_zero_dual_rounded_toward_a_missing_side_is_accepted_as_zero():
+    """min c0 x0 + c1 x1, x0 + x1 = 1, x0 <= 1/2 (the lower side left out), x in [0, 1]^2, at the
+    vertex (1/2, 1/2) with both variables basic: nu = c1 and y = c0 - c1. With c0 = 0.1 + 0.2
+    and c1 = 0.3, y rounds to +5.6e-17, pointing at the missing lower side (D would be -inf);
+    it is taken as 0 (the exact dual), and the certificate accepts: the optimum is 0.3, and
+    D(0.3, 0) = 0.3."""
+    from smdpjax.abstraction.lp import LPTable
+
+    table = LPTable(caps=np.ones(2), cost_src=np.arange(2), var_start=np.array([0, 2]), free_mass=np.ones(1),
+                    cluster=np.zeros(1, np.int64), lo=np.array([-np.inf]), hi=np.array([0.5]),
+                    row_start=np.array([0, 1]), var=np.array([0]), member_start=np.array([0, 1]))
+    record = BasisRecord(2, 1, 1)
+    record.x[:] = 0.5
+    record.basic[:] = record.active[0] = record.eq_active[0] = record.known[0] = True
+    cost = np.array([0.1 + 0.2, 0.3])
+    assert cost[0] - cost[1] > 0  # the rounding this is about
+    accepted, rows, owner, duals = reprice(table, np.array([0]), cost, record, gap=1e-15)
+    assert accepted[0]
+    np.testing.assert_array_equal(duals, [0.0])
+    # a dual of the wrong sign that is not rounding (the basis is no longer optimal) stays refused
+    refused, *_ = reprice(table, np.array([0]), np.array([1.0, 0.3]), record, gap=1e-10)
+    assert not refused[0]
+
+
 def test_degenerate_solves_record_the_solvers_basis(lps_and_costs, monkeypatch):
     """Tied costs make the optimum degenerate: some nonbasic variables have reduced cost 0, so the
     duals do not tell the basis and the record reads HiGHS's statuses. Those bases re-price to
