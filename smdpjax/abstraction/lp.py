@@ -64,8 +64,8 @@ BACKENDS = ("clarabel", "highs")
 # Re-priced duals are used where their certified duality gap is at most this (``lp_reprice``).
 REPRICE_GAP = 1e-10
 # LPs re-priced per task: about this many chunks per thread, each within these bounds.
-_REPRICE_CHUNKS_PER_THREAD = 8
-_REPRICE_CHUNK = (32, 512)
+_REPRICE_CHUNKS_PER_THREAD = 2
+_REPRICE_CHUNK = (32, 4096)
 # Solver statuses of an optimal (or, for Clarabel, an optimal up to its reduced tolerances) solve
 _OPTIMAL = frozenset({"Solved", "AlmostSolved", "Optimal"})
 
@@ -357,7 +357,11 @@ class ClusterLPs:
             if self.reprice:
                 record, lock = self._record(direction), self._record_locks[direction]
                 if status in _OPTIMAL:
-                    record.record(self._lps, p, solution, row_dual, h.getBasis, lock)
+                    # a solve from the last basis that took no iteration: re-price it next time
+                    # (after a first solve, from no basis, too)
+                    stable = basis is None or h.getInfo().simplex_iteration_count == 0
+                    record.record(self._lps, p, solution, row_dual, lambda: h.getBasicVariables()[1], lock,
+                                  stable=stable)
                 else:
                     with lock:
                         record.forget(p)
@@ -381,7 +385,7 @@ class ClusterLPs:
         optimal (``lp_reprice``): their multipliers go to ``flat``. Returns which were served."""
         record = self._records.get(direction)
         accepted = np.zeros(ids.size, bool)
-        have = np.flatnonzero(record.known[ids]) if record is not None else np.zeros(0, np.int64)
+        have = np.flatnonzero(record.known[ids] & record.stable[ids]) if record is not None else np.zeros(0, np.int64)
         if have.size == 0:  # e.g. every basis too large to record
             return accepted
         table = self._lps

@@ -3,13 +3,17 @@
 Between two backups only the costs of an LP (``lp.ClusterLPs``) change; its constraints do not, so
 the last optimal vertex ``x`` stays feasible and its basis often stays optimal (76% of the HiGHS
 solves of the 4-room temperature row took no simplex iteration). Re-pricing that basis for the new
-costs ``c`` is one small linear system per LP, solved here for many LPs at once in NumPy:
+costs ``c`` is one small linear system per LP, solved for many LPs at once (dense NumPy systems up
+to 32 unknowns, one sparse block-diagonal SuperLU factorization for larger ones):
 
 * the equations are the basic variables of the last solve (reduced cost 0): for each,
   ``nu + sum_{active rows i containing j} y_i = c_j``;
 * the unknowns are the equality's multiplier ``nu`` and the duals ``y_i`` of the active
   (nonbasic) cluster rows. A basis has as many of each; an LP with more than ``max_size``, or
-  whose system is singular, is left to the solver.
+  whose system is singular, is left to the solver. A large basis (sparse system) that the
+  certificate refused is not re-priced again until the solver's next solve of its LP took no
+  simplex iteration (``BasisRecord.stable``): most of the 2-D unicycle's refused ones keep
+  moving, and their systems cost ~0.1 ms each.
 
 The duals are accepted only with a certificate: the surrogate LP's dual function at them,
 
@@ -19,9 +23,10 @@ The duals are accepted only with a certificate: the surrogate LP's dual function
 is a lower bound of the optimum for *any* ``(nu, y)`` (weak duality, variables in ``[0, cap_j]``),
 and ``c . x`` an upper bound (``x`` is feasible). A re-priced dual of a row with one side (the
 other implied, hence left out) whose sign points at the missing side is set to 0 first: the
-re-priced value of a zero dual rounds to either sign (on the 3-D temperature row, 1 650 of the 11 200
-solver calls of a warm synthesis took no simplex iteration and were only refused for this). Where ``c . x - D(nu, y) <= gap`` the duals are
-optimal to within ``gap``: what a solver returns, to its tolerance. Nothing here bears on
+re-priced value of a zero dual rounds to either sign (on the 3-D temperature row, 1 650 of the
+11 200 solver calls of a warm synthesis took no simplex iteration and were only refused for
+this). Where ``c . x - D(nu, y) <= gap`` the duals are optimal to within ``gap``: what a solver
+returns, to its tolerance. Nothing here bears on
 soundness (``mimdp`` certifies any nonnegative multipliers); a rejected LP is solved as before.
 """
 
@@ -33,12 +38,13 @@ import numpy as np
 
 # Dense systems solved at once: at most this many matrix entries (float64: 32 MB).
 _SYSTEM_ENTRIES = 1 << 22
-# Systems are padded to the next of these sizes; an LP of more unknowns goes to the solver: a
-# dense system of 64-128 unknowns costs about what HiGHS's warm solve of the 2-D unicycle's LPs
-# does (~0.2 ms; measured with sizes up to 128: row 3 of Table 1 took 0.74x the time).
+# Systems of up to SIZES[-1] unknowns are padded to the next of these sizes and solved densely;
+# larger ones (up to MAX_SIZE) as one sparse block-diagonal system per call. Dense systems of
+# 64-128 unknowns cost about what HiGHS's warm solve of the 2-D unicycle's LPs does (row 3 of
+# Table 1 took 65.8 s against 48.97 s with them); the sparse factorization of its 767 strategy
+# LPs' systems (median 53 unknowns) takes ~0.1 ms per LP against HiGHS's ~0.5 ms.
 SIZES = (8, 16, 32)
-# ``HighsBasisStatus.kBasic``
-_BASIC = 1
+MAX_SIZE = 512
 
 
 class BasisRecord:
@@ -50,6 +56,10 @@ class BasisRecord:
         active: ``(W,)`` bool the nonbasic cluster rows (at one of their sides).
         eq_active: ``(P,)`` bool the equality row is nonbasic.
         known: ``(P,)`` bool the LP has a record.
+        stable: ``(P,)`` bool worth re-pricing: a basis small enough for the dense systems,
+            or one that was still optimal last time (the solver took no iteration from it, or
+            its re-pricing was accepted). A larger basis that the certificate refused waits for
+            the solver's next solve.
     """
 
     def __init__(self, num_vars: int, num_rows: int, num_lps: int):
@@ -58,33 +68,37 @@ class BasisRecord:
         self.active = np.zeros(num_rows, bool)
         self.eq_active = np.zeros(num_lps, bool)
         self.known = np.zeros(num_lps, bool)
+        self.stable = np.zeros(num_lps, bool)
 
-    def record(self, table, p: int, solution, row_dual, basis, lock=None) -> None:
+    def record(self, table, p: int, solution, row_dual, basic_variables, lock=None, stable: bool = True) -> None:
         """Keep LP ``p``'s optimal vertex (``solution.col_value``) and its basis: the basic
         variables and the nonbasic rows. ``solution``'s columns are read only for a basis small
         enough to re-price (highspy copies them out at every read).
 
         Read from the duals where they tell (the solver sets the reduced cost of a basic variable
         and the dual of a basic row to exactly 0); where a zero dual leaves it open (a degenerate
-        solve: as many basic variables as nonbasic rows is not met), from ``basis()``, the
-        solver's statuses (slower to read: ~0.3 ms per 1 300 variables). ``lock`` is held while
-        the record is written."""
+        solve: as many basic variables as nonbasic rows is not met), from
+        ``basic_variables()``, the solver's basic variables (``Highs.getBasicVariables``: column
+        ``j`` as ``j``, row ``i`` as ``-1 - i``). ``lock`` is held while the record is written.
+        ``stable``: the solve took no simplex iteration from the LP's last basis."""
         v0, v1 = table.var_start[p], table.var_start[p + 1]
         r0, r1 = table.row_start[p], table.row_start[p + 1]
         nonbasic_rows = np.asarray(row_dual) != 0.0
         # the basis has as many basic variables as nonbasic rows, at least the rows of nonzero
-        # dual: too many of those, and nothing else is read (most solves of the 2-D unicycle)
-        if nonbasic_rows.sum() > SIZES[-1]:
+        # dual: too many of those, and nothing else is read
+        if nonbasic_rows.sum() > MAX_SIZE:
             with lock or contextlib.nullcontext():
                 self.known[p] = False
             return
         x = np.asarray(solution.col_value, np.float64)
         basic = np.asarray(solution.col_dual, np.float64) == 0.0
         if basic.sum() != nonbasic_rows.sum():
-            status = basis()
-            basic = np.fromiter(map(int, status.col_status), np.int8, v1 - v0) == _BASIC
-            nonbasic_rows = np.fromiter(map(int, status.row_status), np.int8, r1 - r0 + 1) != _BASIC
-        if nonbasic_rows.sum() > SIZES[-1]:  # too large to re-price: not worth recording
+            listed = np.asarray(basic_variables(), np.int64)
+            basic = np.zeros(v1 - v0, bool)
+            basic[listed[listed >= 0]] = True
+            nonbasic_rows = np.ones(r1 - r0 + 1, bool)
+            nonbasic_rows[-1 - listed[listed < 0]] = False
+        if nonbasic_rows.sum() > MAX_SIZE:  # too large to re-price: not worth recording
             with lock or contextlib.nullcontext():
                 self.known[p] = False
             return
@@ -94,13 +108,14 @@ class BasisRecord:
             self.active[r0:r1] = nonbasic_rows[1:]
             self.eq_active[p] = nonbasic_rows[0]
             self.known[p] = True
+            self.stable[p] = stable or nonbasic_rows.sum() <= SIZES[-1]
 
     def forget(self, p: int) -> None:
         self.known[p] = False
 
     @property
     def nbytes(self) -> int:
-        return int(sum(a.nbytes for a in (self.x, self.basic, self.active, self.eq_active, self.known)))
+        return int(sum(a.nbytes for a in (self.x, self.basic, self.active, self.eq_active, self.known, self.stable)))
 
 
 def ranges(start, stop):
@@ -117,7 +132,7 @@ def _rank(mask, owner, count):
     return np.cumsum(mask) - 1 - (np.cumsum(totals) - totals)[owner]
 
 
-def reprice(table, ids, var_cost, record: BasisRecord, *, gap: float, max_size: int = SIZES[-1], lock=None):
+def reprice(table, ids, var_cost, record: BasisRecord, *, gap: float, max_size: int = MAX_SIZE, lock=None):
     """Re-priced duals of the LPs ``ids`` at new costs, where certified optimal within ``gap``.
 
     Args:
@@ -141,7 +156,7 @@ def reprice(table, ids, var_cost, record: BasisRecord, *, gap: float, max_size: 
     var_offset = np.concatenate([[0], np.cumsum(np.bincount(vq, minlength=q_count))])[:-1]
     with lock or contextlib.nullcontext():
         basic, active, eq = record.basic[gv], record.active[gr], record.eq_active[ids]
-        x, known = record.x[gv], record.known[ids]
+        x, known = record.x[gv], record.known[ids] & record.stable[ids]
     size = np.bincount(vq[basic], minlength=q_count)
     unknowns = np.bincount(rq[active], minlength=q_count) + eq
     ok = known & (size == unknowns) & (size > 0) & (size <= max_size)
@@ -169,6 +184,14 @@ def reprice(table, ids, var_cost, record: BasisRecord, *, gap: float, max_size: 
             nu[part], solved[part] = np.where(eq[part], y[:, 0], 0.0), good
             take = slot[rq[use]] >= 0
             y_active[take] = y[slot[rq[use][take]], column[use][take]]
+    sparse = np.flatnonzero(ok & (size > SIZES[-1]))
+    if sparse.size:
+        slot = np.full(q_count, -1)
+        slot[sparse] = np.arange(sparse.size)
+        y, start, good = _solve_sparse(sparse, slot, size, eq, vq, basic, equation, var_cost, row_q, pos, entry_col)
+        nu[sparse], solved[sparse] = np.where(eq[sparse], y[start[:-1]], 0.0), good
+        take = slot[rq[use]] >= 0
+        y_active[take] = y[start[slot[rq[use][take]]] + column[use][take]]
     ok &= solved
 
     # the certificate: c . x - D(nu, y)
@@ -188,6 +211,8 @@ def reprice(table, ids, var_cost, record: BasisRecord, *, gap: float, max_size: 
     dual = (nu * table.free_mass[ids] + np.bincount(rq, weights=side, minlength=q_count)
             + np.bincount(vq, weights=caps * np.minimum(reduced, 0.0), minlength=q_count))
     accepted = ok & np.isfinite(dual) & (primal - dual <= gap)
+    with lock or contextlib.nullcontext():
+        record.stable[ids[ok & ~accepted & (size > SIZES[-1])]] = False  # the solver's next solve tells again
     y_rows[~accepted[rq]] = 0.0
     return accepted, gr, rq, y_rows
 
@@ -212,3 +237,45 @@ def _solve_systems(part, slot, s, size, eq, vq, basic, equation, var_cost, row_q
     matrix[~solved] = np.eye(s)
     y = np.linalg.solve(matrix, rhs[..., None])[..., 0]
     return y, solved & np.isfinite(y).all(axis=1)
+
+
+def _solve_sparse(part, slot, size, eq, vq, basic, equation, var_cost, row_q, pos, entry_col):
+    """``(y, start, solved)``: the systems of the LPs ``part`` as one sparse block-diagonal system,
+    LP ``part[i]``'s unknowns at ``y[start[i]:start[i + 1]]``. A singular system (SuperLU stops at
+    an exactly zero pivot) is found by halving the set until it is alone; it is not solved."""
+    from scipy.sparse import csc_matrix
+    from scipy.sparse.linalg import splu
+
+    start = np.concatenate([[0], np.cumsum(size[part])])
+    in_part = basic & (slot[vq] >= 0)
+    base = start[slot[vq[in_part]]]
+    eq_rows = in_part & eq[vq]
+    entries = (slot[row_q] >= 0) & basic[pos]
+    entry_base = start[slot[row_q[entries]]]
+    rows = np.concatenate([start[slot[vq[eq_rows]]] + equation[eq_rows], entry_base + equation[pos[entries]]])
+    cols = np.concatenate([start[slot[vq[eq_rows]]], entry_base + entry_col[entries]])
+    owner = np.repeat(np.arange(part.size), size[part])
+    rhs = np.zeros(start[-1])
+    rhs[base + equation[in_part]] = var_cost[in_part]
+    y = np.zeros(start[-1])
+    solved = np.zeros(part.size, bool)
+    entry_owner = owner[rows]
+
+    def solve(lo, hi):  # the LPs part[lo:hi], unknowns start[lo]..start[hi]
+        keep = (entry_owner >= lo) & (entry_owner < hi)
+        n = int(start[hi] - start[lo])
+        matrix = csc_matrix((np.ones(int(keep.sum())), (rows[keep] - start[lo], cols[keep] - start[lo])), shape=(n, n))
+        try:
+            # block-diagonal: the natural column order keeps the fill inside the blocks (the
+            # default COLAMD took 1.25x as long on row 3's 767 strategy LPs)
+            y[start[lo]:start[hi]] = splu(matrix, permc_spec="NATURAL").solve(rhs[start[lo]:start[hi]])
+            solved[lo:hi] = True
+        except RuntimeError:  # exactly singular
+            if hi - lo > 1:
+                mid = (lo + hi) // 2
+                solve(lo, mid)
+                solve(mid, hi)
+
+    solve(0, part.size)
+    finite = np.bincount(owner, weights=~np.isfinite(y), minlength=part.size) == 0
+    return np.where(np.isfinite(y), y, 0.0), start, solved & finite

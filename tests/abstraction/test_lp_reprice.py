@@ -93,6 +93,63 @@ def test_accepted_duals_certify_the_fresh_solves_value(seed, step, lps_and_costs
         assert accepted_total > ids.size  # most bases stay optimal under small steps
 
 
+@pytest.mark.parametrize("seed", [0, 3])
+def test_the_sparse_systems_reprice_as_the_dense_ones(seed, lps_and_costs, monkeypatch):
+    """Every system solved as one sparse block-diagonal system (``SIZES = (2,)``: all but the
+    smallest) gives the duals and the accepted LPs that the dense systems give, at the costs of
+    the last solve (all accepted, HiGHS's duals) and after the costs moved."""
+    from smdpjax.abstraction import lp_reprice
+
+    lps, w, rng = lps_and_costs(seed, rest=0.01)
+    ids = np.arange(lps.num_lps)
+    solved = lps.multipliers(w, ids).reshape(ids.size, -1)
+    table, record = lps._lps, lps._record(0)
+    gv, vq = ranges(table.var_start[ids], table.var_start[ids + 1])
+    size = np.bincount(vq[record.basic[gv]], minlength=ids.size)
+    assert (size > 2).sum() >= 10 and size.max() <= lp_reprice.SIZES[-1]
+    for w_now in (w, np.clip(w + 1e-4 * rng.uniform(-1, 1, w.size), 0, 1)):
+        var_cost = lps.cost_table(w_now, ids)[vq, table.cost_src[gv]]
+        dense = reprice(table, ids, var_cost, record, gap=1e-10)
+        with monkeypatch.context() as m:
+            m.setattr(lp_reprice, "SIZES", (2,))
+            sparse = reprice(table, ids, var_cost, record, gap=1e-10)
+        np.testing.assert_array_equal(sparse[0], dense[0])
+        np.testing.assert_allclose(sparse[3], dense[3], rtol=0, atol=1e-12)
+        assert dense[0].sum() >= ids.size // 2
+    out = np.zeros_like(solved)
+    monkeypatch.setattr(lp_reprice, "SIZES", (2,))
+    served = lps._repriced(ids, lps.cost_table(w, ids), 0, out)
+    assert served[size > 2].all()
+    np.testing.assert_allclose(out[served], solved[served], rtol=0, atol=1e-12)
+
+
+def test_a_refused_basis_waits_for_a_solve_that_keeps_it(lps_and_costs, monkeypatch):
+    """An LP whose re-priced sparse system was refused is not re-priced again until HiGHS has
+    solved it without a simplex iteration (its basis then stable again); the dense systems
+    (here only those of at most 2 unknowns) are always tried."""
+    from smdpjax.abstraction import lp_reprice
+
+    monkeypatch.setattr(lp_reprice, "SIZES", (2,))
+    lps, w, _ = lps_and_costs(5)
+    ids = np.arange(lps.num_lps)
+    lps.multipliers(w, ids)
+    record = lps._record(0)
+    assert record.stable[record.known].all()  # a first solve from no basis: counted as stable
+    costs = lps.cost_table(1.0 - w, ids)
+    served = lps._repriced(ids, costs, 0, np.zeros((ids.size, 2 * lps.num_clusters)))
+    table = lps._lps
+    gv, vq = ranges(table.var_start[ids], table.var_start[ids + 1])
+    large = np.bincount(vq[record.basic[gv]], minlength=ids.size) > 2
+    refused = record.known & ~served & large
+    assert refused.any() and not record.stable[refused].any()
+    assert record.stable[record.known & ~large].all()
+    again = lps._repriced(ids, costs, 0, np.zeros((ids.size, 2 * lps.num_clusters)))
+    assert not again[refused].any()
+    lps.multipliers(1.0 - w, ids)  # HiGHS moves the refused bases
+    lps.multipliers(1.0 - w, ids)  # at the same costs: served, or solved with no iteration
+    assert record.stable[record.known].all()
+
+
 def test_a_stale_basis_is_rejected_not_trusted(lps_and_costs):
     """Costs reversed: the recorded bases are not optimal any more. Each is rejected by its
     certificate, or accepted only where its duals are still optimal."""
@@ -134,7 +191,7 @@ def test_reprice_handles_singular_and_oversized_systems(lps_and_costs):
     # singular: the equality and one row active, two basic variables outside that row (the
     # same column (1, 0) twice)
     broken = BasisRecord(table.caps.size, table.cluster.size, lps.num_lps)
-    for name in ("x", "basic", "active", "eq_active", "known"):
+    for name in ("x", "basic", "active", "eq_active", "known", "stable"):
         setattr(broken, name, getattr(record, name).copy())
     for p in np.flatnonzero(np.diff(table.row_start) > 0):
         v0, v1, r0, r1 = table.var_start[p], table.var_start[p + 1], table.row_start[p], table.row_start[p + 1]
@@ -166,7 +223,7 @@ def test_a_zero_dual_rounded_toward_a_missing_side_is_accepted_as_zero():
                     row_start=np.array([0, 1]), var=np.array([0]), member_start=np.array([0, 1]))
     record = BasisRecord(2, 1, 1)
     record.x[:] = 0.5
-    record.basic[:] = record.active[0] = record.eq_active[0] = record.known[0] = True
+    record.basic[:] = record.active[0] = record.eq_active[0] = record.known[0] = record.stable[0] = True
     cost = np.array([0.1 + 0.2, 0.3])
     assert cost[0] - cost[1] > 0  # the rounding this is about
     accepted, rows, owner, duals = reprice(table, np.array([0]), cost, record, gap=1e-15)
@@ -189,8 +246,8 @@ def test_degenerate_solves_record_the_solvers_basis(lps_and_costs, monkeypatch):
     read = []
     record = lp_reprice.BasisRecord.record
 
-    def counted(self, table, p, solution, row_dual, basis, lock=None):
-        return record(self, table, p, solution, row_dual, lambda: read.append(p) or basis(), lock)
+    def counted(self, table, p, solution, row_dual, basic_variables, lock=None, **kwargs):
+        return record(self, table, p, solution, row_dual, lambda: read.append(p) or basic_variables(), lock, **kwargs)
 
     monkeypatch.setattr(lp_reprice.BasisRecord, "record", counted)
     solved = lps.multipliers(w, ids).reshape(ids.size, -1)
@@ -202,8 +259,8 @@ def test_degenerate_solves_record_the_solvers_basis(lps_and_costs, monkeypatch):
 
 
 def test_bases_too_large_to_reprice_are_not_recorded(lps_and_costs, monkeypatch):
-    """A basis of more unknowns than the largest system size is not recorded (its LP is solved
-    every time); the others are, as without the limit."""
+    """A basis of more unknowns than the largest system size (``MAX_SIZE``) is not recorded (its
+    LP is solved every time); the others are, as without the limit."""
     from smdpjax.abstraction import lp_reprice
 
     def recorded():
@@ -216,7 +273,7 @@ def test_bases_too_large_to_reprice_are_not_recorded(lps_and_costs, monkeypatch)
         return record.known.copy(), unknowns
 
     known, unknowns = recorded()
-    monkeypatch.setattr(lp_reprice, "SIZES", (2,))
+    monkeypatch.setattr(lp_reprice, "MAX_SIZE", 2)
     limited, _ = recorded()
     np.testing.assert_array_equal(limited, known & (unknowns <= 2))
     assert limited.any() and (known & ~limited).any()
