@@ -140,7 +140,9 @@ def reprice(table, ids, var_cost, record: BasisRecord, *, gap: float, max_size: 
         ids: ``(Q,)`` LP ids.
         var_cost: ``(V_q,)`` the new cost of every variable of ``ids[0]``, ``ids[1]``, ...
             (concatenated in that order).
-        record: their last optimal solves (``BasisRecord``; LPs without one are not accepted).
+        record: their last optimal solves (``BasisRecord``; LPs without one, or not ``stable``,
+            are not accepted). A refused LP of more than ``SIZES[-1]`` unknowns is marked not
+            ``stable`` there.
         gap: accept where the certified duality gap is at most this.
         max_size: LPs with more basic variables go to the solver.
         lock: held while the record is read (solves of other calls may be writing it).
