@@ -26,8 +26,8 @@ other implied, hence left out) whose sign points at the missing side is set to 0
 re-priced value of a zero dual rounds to either sign (on the 3-D temperature row, 1 650 of the
 11 200 solver calls of a warm synthesis took no simplex iteration and were only refused for
 this). Where ``c . x - D(nu, y) <= gap`` the duals are optimal to within ``gap``: what a solver
-returns, to its tolerance. Nothing here bears on
-soundness (``mimdp`` certifies any nonnegative multipliers); a rejected LP is solved as before.
+returns, to its tolerance. Nothing here bears on soundness (``mimdp`` certifies any nonnegative
+multipliers); a rejected LP is solved as before.
 """
 
 from __future__ import annotations
@@ -141,8 +141,8 @@ def reprice(table, ids, var_cost, record: BasisRecord, *, gap: float, max_size: 
         var_cost: ``(V_q,)`` the new cost of every variable of ``ids[0]``, ``ids[1]``, ...
             (concatenated in that order).
         record: their last optimal solves (``BasisRecord``; LPs without one, or not ``stable``,
-            are not accepted). A refused LP of more than ``SIZES[-1]`` unknowns is marked not
-            ``stable`` there.
+            are not accepted). A refused LP of more than ``SIZES[-1]`` unknowns (singular, or
+            not certified) is marked not ``stable`` there.
         gap: accept where the certified duality gap is at most this.
         max_size: LPs with more basic variables go to the solver.
         lock: held while the record is read (solves of other calls may be writing it).
@@ -194,6 +194,7 @@ def reprice(table, ids, var_cost, record: BasisRecord, *, gap: float, max_size: 
         nu[sparse], solved[sparse] = np.where(eq[sparse], y[start[:-1]], 0.0), good
         take = slot[rq[use]] >= 0
         y_active[take] = y[start[slot[rq[use][take]]] + column[use][take]]
+    tried = ok & (size > SIZES[-1])
     ok &= solved
 
     # the certificate: c . x - D(nu, y)
@@ -214,7 +215,7 @@ def reprice(table, ids, var_cost, record: BasisRecord, *, gap: float, max_size: 
             + np.bincount(vq, weights=caps * np.minimum(reduced, 0.0), minlength=q_count))
     accepted = ok & np.isfinite(dual) & (primal - dual <= gap)
     with lock or contextlib.nullcontext():
-        record.stable[ids[ok & ~accepted & (size > SIZES[-1])]] = False  # the solver's next solve tells again
+        record.stable[ids[tried & ~accepted]] = False  # the solver's next solve tells again
     y_rows[~accepted[rq]] = 0.0
     return accepted, gr, rq, y_rows
 

@@ -173,9 +173,15 @@ def test_a_stale_basis_is_rejected_not_trusted(lps_and_costs):
     assert rejected > 0
 
 
-def test_reprice_handles_singular_and_oversized_systems(lps_and_costs):
+@pytest.mark.parametrize("sizes", [None, (1,)])
+def test_reprice_handles_singular_and_oversized_systems(lps_and_costs, monkeypatch, sizes):
     """A record whose system is singular, or larger than ``max_size``, is not accepted (the LP
-    goes to the solver), and the other LPs of the call are unaffected."""
+    goes to the solver), and the other LPs of the call are unaffected; through the dense systems
+    and (``SIZES = (1,)``) the sparse one, where the singular record is also marked not stable."""
+    from smdpjax.abstraction import lp_reprice
+
+    if sizes is not None:
+        monkeypatch.setattr(lp_reprice, "SIZES", sizes)
     lps, w, _ = lps_and_costs(2)
     ids = np.arange(lps.num_lps)
     lps.multipliers(w, ids)
@@ -208,6 +214,7 @@ def test_reprice_handles_singular_and_oversized_systems(lps_and_costs):
     again, *_ = reprice(table, ids, var_cost, broken, gap=1e-10)
     assert not again[p]
     np.testing.assert_array_equal(np.delete(again, p), np.delete(accepted, p))
+    assert broken.stable[p] == (sizes is None)
 
 
 def test_a_zero_dual_rounded_toward_a_missing_side_is_accepted_as_zero():
