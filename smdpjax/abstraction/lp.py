@@ -360,7 +360,7 @@ class ClusterLPs:
                     # a solve from the last basis that took no iteration: re-price it next time
                     # (after a first solve, from no basis, too)
                     stable = basis is None or h.getInfo().simplex_iteration_count == 0
-                    record.record(self._lps, p, solution, row_dual, lambda: h.getBasicVariables()[1], lock,
+                    record.record(self._lps, p, solution, row_dual, lambda: _basic_variables(h), lock,
                                   stable=stable)
                 else:
                     with lock:
@@ -641,6 +641,13 @@ class LPTable:
     def nbytes(self) -> int:
         return int(sum(a.nbytes for a in (self.caps, self.cost_src, self.var_start, self.free_mass, self.cluster,
                                           self.lo, self.hi, self.row_start, self.var, self.member_start)))
+
+
+def _basic_variables(h):
+    """HiGHS's basic variables as an array (column ``j`` as ``j``, row ``i`` as ``-1 - i``):
+    highspy returns ``(status, array)``, some versions the array alone."""
+    listed = h.getBasicVariables()
+    return listed[1] if isinstance(listed, tuple) else listed
 
 
 def _import(backend: str):
