@@ -250,16 +250,16 @@ def _solve_sparse(part, slot, size, eq, vq, basic, equation, var_cost, row_q, po
     from scipy.sparse.linalg import splu
 
     start = np.concatenate([[0], np.cumsum(size[part])])
+    var_base = start[slot[vq]]  # the first unknown of each variable's LP (where it is in part)
     in_part = basic & (slot[vq] >= 0)
-    base = start[slot[vq[in_part]]]
     eq_rows = in_part & eq[vq]
     entries = (slot[row_q] >= 0) & basic[pos]
     entry_base = start[slot[row_q[entries]]]
-    rows = np.concatenate([start[slot[vq[eq_rows]]] + equation[eq_rows], entry_base + equation[pos[entries]]])
-    cols = np.concatenate([start[slot[vq[eq_rows]]], entry_base + entry_col[entries]])
+    rows = np.concatenate([var_base[eq_rows] + equation[eq_rows], entry_base + equation[pos[entries]]])
+    cols = np.concatenate([var_base[eq_rows], entry_base + entry_col[entries]])
     owner = np.repeat(np.arange(part.size), size[part])
     rhs = np.zeros(start[-1])
-    rhs[base + equation[in_part]] = var_cost[in_part]
+    rhs[var_base[in_part] + equation[in_part]] = var_cost[in_part]
     y = np.zeros(start[-1])
     solved = np.zeros(part.size, bool)
     entry_owner = owner[rows]
