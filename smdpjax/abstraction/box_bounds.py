@@ -127,18 +127,17 @@ def region_bounds(cells, periodic, boxes: IndexBoxes, prob, block=None, noise_sh
         dependence.append(_noise_dependence(part, noise_shape) if factor else None)
     size = tuple(int(v) for v in np.max(np.concatenate([np.asarray(e) for _, e in windows]), axis=0))
     size = tuple(max(v, 1) for v in size)
+    sentinel = math.prod(_regions_per_dim(geometry)) + 1
     pieces, widths = [], []
     for part, (anchor, _), depends in zip(chunks(), windows, dependence):
         axes = None if depends is None else _factor_axes(*depends)
-        if axes is None:
-            lower, upper = _window_bounds(geometry, size, part, anchor, prob)
-        else:
-            lower, upper = _factored_window_bounds(geometry, size, part, anchor, prob, noise_shape, axes)
-        widths.append(int(jnp.max(jnp.sum(upper > 0, axis=-1))))
+        lower, upper, listed = _piece_bounds(geometry, size, part, anchor, prob, noise_shape, axes)
+        widths.append(int(listed))
         chunk_width = max(1, min(upper.shape[-1], _quantized_width(widths[-1])))
+        if single is not None:  # one chunk: compacted, cut to its width and shaped in one program
+            return _compact_lists(geometry, size, anchor, lower, upper, chunk_width, widths[-1], sentinel, (r, a))
         pieces.append(_compact(geometry, size, anchor, lower, upper, chunk_width))
     width = max(widths)  # padding rows copy a real row, so they never widen the lists
-    sentinel = math.prod(_regions_per_dim(geometry)) + 1
 
     # the last chunk's padding rows are cut off with its lists' widening: one copy per piece
     last_rows = r * a - (len(pieces) - 1) * step * a
@@ -146,6 +145,25 @@ def region_bounds(cells, periodic, boxes: IndexBoxes, prob, block=None, noise_sh
               for i, piece in enumerate(pieces)]
     ids, lower, upper = (jnp.concatenate(arrays).reshape(r, a, width) for arrays in zip(*pieces))
     return ids, lower, upper
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1, 5, 6))
+def _piece_bounds(geometry, size, boxes: IndexBoxes, anchor, prob, noise_shape, axes):
+    """``(lower, upper, listed)``: a chunk's window bounds (``_window_bounds``, or
+    ``_factored_window_bounds`` along ``axes``) and the most regions any of its rows lists."""
+    if axes is None:
+        lower, upper = _window_bounds(geometry, size, boxes, anchor, prob)
+    else:
+        lower, upper = _factored_window_bounds(geometry, size, boxes, anchor, prob, noise_shape, axes)
+    return lower, upper, jnp.max(jnp.sum(upper > 0, axis=-1))
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1, 5, 6, 7, 8))
+def _compact_lists(geometry, size, anchor, lower, upper, chunk_width: int, width: int, sentinel: int, lead: tuple):
+    """``_compact`` of the only chunk, cut to ``width`` slots and shaped ``lead + (width,)``."""
+    rows = math.prod(lead)
+    return tuple(x.reshape(lead + (width,)) for x in _to_width(_compact(geometry, size, anchor, lower, upper,
+                                                                        chunk_width), width, sentinel, rows))
 
 
 def _rows_per_chunk(rows: int, actions: int) -> int:

@@ -122,8 +122,7 @@ class CompactIMDP(AbstractionMixin):
         succ, lower, upper = region_bounds(grid.cells, grid.periodic, clusters.boxes, clusters.prob,
                                            noise_shape=clusters.noise_shape)
         rest = jnp.asarray(clusters.prob_rest)
-        upper = jnp.where(succ <= grid.num_cells, upper + rest, 0.0)
-        return cls.from_lists(succ, lower, upper, rest, clusters.rows, grid.state_labels, chunk=chunk)
+        return cls.from_lists(succ, lower, upper, rest, clusters.rows, grid.state_labels, chunk=chunk, upper_add=rest)
 
     @classmethod
     def from_imdp(cls, imdp, *, chunk: int | None = None) -> "CompactIMDP":
@@ -133,9 +132,10 @@ class CompactIMDP(AbstractionMixin):
 
     @classmethod
     def from_lists(cls, successors, lower, upper, upper_rest, rows, labels, *,
-                   chunk: int | None = None) -> "CompactIMDP":
+                   chunk: int | None = None, upper_add=None) -> "CompactIMDP":
         """From padded lists ``(R, A, K)`` (padding ``>= N + 1``, anywhere in a list), as an
-        ``IMDP`` holds them. Concrete arrays only (the number of chunks depends on the widths)."""
+        ``IMDP`` holds them (``upper_add``: a scalar the listed ``upper`` bounds do not include yet,
+        added to them). Concrete arrays only (the number of chunks depends on the widths)."""
         labels = jnp.asarray(labels)
         n_states = int(labels.shape[0])
         successors, lower, upper = jnp.asarray(successors), jnp.asarray(lower), jnp.asarray(upper)
@@ -149,13 +149,14 @@ class CompactIMDP(AbstractionMixin):
         if bool(gaps):  # padding inside a list: listed entries first
             front = jnp.argsort(successors >= n_states, axis=-1, stable=True)
             successors, lower, upper = (jnp.take_along_axis(a, front, axis=-1) for a in (successors, lower, upper))
-        listed = successors < n_states
         widths, num_lower = np.maximum(np.asarray(widths), 1), int(num_lower)  # (R,) widest list of each row
         chunk = list_chunk_width(widths) if chunk is None else chunk
-        c_succ, c_upper, chunk_row, l_succ, l_value = chunk_lists(successors.astype(index_dtype(n_states)), lower,
-                                                                  upper, listed, widths, chunk, num_lower, n_states)
+        c_succ, c_upper, chunk_row, l_succ, l_value = chunk_lists(successors, lower, upper, successors, n_states,
+                                                                  widths, chunk, num_lower, n_states,
+                                                                  upper_add=upper_add, id_dtype=index_dtype(n_states))
         slots = c_succ.shape[0] * c_succ.shape[2] / num_rows  # per row and action
-        return cls(chunk_succ=c_succ, chunk_upper=encode(c_upper), chunk_row=chunk_row, lower_succ=l_succ,
+        return cls(chunk_succ=c_succ, chunk_upper=encode(c_upper), chunk_row=jnp.asarray(chunk_row),
+                   lower_succ=l_succ,
                    lower_value=l_value, upper_rest=jnp.asarray(upper_rest), rows=jnp.asarray(rows, jnp.int32),
                    labels=labels, width=int(widths.max()), list_rows=num_rows,
                    **block_fields(chunk_row, num_rows, c_succ.shape[1], slots))
@@ -313,8 +314,7 @@ def chunk_layout(widths, chunk: int | None = None):
     return chunk_row, within, w, int(counts.max(initial=1))
 
 
-@functools.partial(jax.jit, static_argnums=(3, 4, 5))
-def to_chunks(x, chunk_row, within, width: int, most: int, fill):
+def _to_chunks(x, chunk_row, within, width: int, most: int, fill):
     """``(C, A, W)`` chunks of padded lists ``x (R, A, K)`` (listed entries first; ``fill`` past
     ``K``), in the layout of ``chunk_layout``."""
     r, a, k = x.shape
@@ -322,8 +322,7 @@ def to_chunks(x, chunk_row, within, width: int, most: int, fill):
     return x[..., :most * width].reshape(r, a, most, width)[chunk_row, :, within]
 
 
-@functools.partial(jax.jit, static_argnums=1)
-def lower_slots(positive, num_lower: int):
+def _lower_slots(positive, num_lower: int):
     """``(R, A, L)`` slots of the (at most ``L = num_lower``) True entries of ``positive (R, A,
     K)`` in each list, padded with ``K``."""
     r, a, k = positive.shape
@@ -332,24 +331,39 @@ def lower_slots(positive, num_lower: int):
     return jnp.stack(slots, -1).astype(jnp.int32) if slots else jnp.zeros((r, a, 0), jnp.int32)
 
 
-def chunk_lists(ids, lower, upper, listed, widths, chunk, num_lower: int, fill):
+def chunk_lists(ids, lower, upper, keys, limit: int, widths, chunk, num_lower: int, fill, upper_add=None,
+                id_dtype=None):
     """Chunked storage of padded lists ``(R, A, K)`` (listed entries first): ``(chunk_ids (C, A,
-    W), chunk_upper (C, A, W), chunk_row (C,), lower_ids (R, A, L), lower_value (R, A, L))``.
+    W), chunk_upper (C, A, W), chunk_row (C,) (host), lower_ids (R, A, L), lower_value (R, A, L))``.
 
-    ``ids`` is what an entry stores (a state, or the 2I-MDP's fine slot), ``fill`` its padding;
-    ``widths (R,)`` the widest list of each row; the lower bounds keep only their ``num_lower``
-    positive entries per list, as (id, value) pairs."""
+    ``ids`` is what an entry stores (a state, or the 2I-MDP's fine slot), as ``id_dtype`` (default
+    its own), ``fill`` its padding; an entry is listed where ``keys < limit``; ``widths (R,)`` the widest
+    list of each row; ``upper_add``: a scalar added to the listed upper bounds (``upper_rest``);
+    the lower bounds keep only their ``num_lower`` positive entries per list, as (id, value)
+    pairs. The layout is computed on the host, the arrays in one compiled pass (the dozen eager
+    operations it replaces cost more than the work on the 2-room rows of Table 1)."""
     chunk_row, within, w, most = chunk_layout(widths, chunk)
-    row_j, within_j = jnp.asarray(chunk_row), jnp.asarray(within)
-    c_ids = to_chunks(jnp.where(listed, ids, fill).astype(ids.dtype), row_j, within_j, w, most, fill)
-    c_upper = to_chunks(jnp.where(listed, upper, 0.0), row_j, within_j, w, most, 0.0)
-    slot = lower_slots((lower > 0) & listed, num_lower)
+    add = jnp.zeros((), upper.dtype) if upper_add is None else jnp.asarray(upper_add, upper.dtype)
+    dtype = np.dtype(ids.dtype if id_dtype is None else id_dtype)
+    arrays = _chunk_arrays(ids, lower, upper, keys, add, chunk_row, within, int(limit), w, most, int(num_lower),
+                           fill, dtype)
+    return arrays[0], arrays[1], chunk_row, arrays[2], arrays[3]
+
+
+@functools.partial(jax.jit, static_argnums=(7, 8, 9, 10, 11, 12))
+def _chunk_arrays(ids, lower, upper, keys, add, chunk_row, within, limit: int, w: int, most: int, num_lower: int,
+                  fill, dtype):
+    listed = keys < limit
+    ids = ids.astype(dtype)
+    c_ids = _to_chunks(jnp.where(listed, ids, fill).astype(dtype), chunk_row, within, w, most, fill)
+    c_upper = _to_chunks(jnp.where(listed, upper + add, 0.0), chunk_row, within, w, most, 0.0)
+    slot = _lower_slots((lower > 0) & listed, num_lower)
     k = ids.shape[-1]
     has = slot < k
     safe = jnp.minimum(slot, k - 1)
-    l_ids = jnp.where(has, jnp.take_along_axis(ids, safe, axis=-1), fill).astype(ids.dtype)
+    l_ids = jnp.where(has, jnp.take_along_axis(ids, safe, axis=-1), fill).astype(dtype)
     l_value = jnp.where(has, jnp.take_along_axis(lower, safe, axis=-1), 0.0)
-    return c_ids, c_upper, row_j, l_ids, l_value
+    return c_ids, c_upper, l_ids, l_value
 
 
 def inner_blocks(chunk_row, num_rows: int, slots_per_row: float, budget: int = BLOCK_SLOTS) -> tuple[int, int]:
