@@ -16,6 +16,8 @@ once every state of rank < k has been offered is
     M(k) = sum_B clip(sum_{i in B} l_i + sum_{i in B, rank_i < k} (u_i - l_i), lo_B, hi_B),
 
 monotone in k; a bisection finds where it reaches 1, and the state of rank k* - 1 takes the rest.
+The bisection reads masses only; the cost of the placement it finds is computed once, after it,
+by pouring each block's mass beyond its lower bounds into the block's cells in rank order.
 The order of the cells inside a block is the block's own (it does not depend on the row): each
 call sorts the B blocks' cells, puts every row's capacities in that order and takes their prefix
 sums once, so that a bisection step only reads, per block met, the prefix sums at the number of
