@@ -355,7 +355,7 @@ def _chunk_arrays(ids, lower, upper, keys, add, chunk_row, within, limit: int, w
                   fill, dtype):
     listed = keys < limit
     ids = ids.astype(dtype)
-    c_ids = _to_chunks(jnp.where(listed, ids, fill).astype(dtype), chunk_row, within, w, most, fill)
+    c_ids = _to_chunks(jnp.where(listed, ids, fill), chunk_row, within, w, most, fill)
     c_upper = _to_chunks(jnp.where(listed, upper + add, 0.0), chunk_row, within, w, most, 0.0)
     slot = _lower_slots((lower > 0) & listed, num_lower)
     k = ids.shape[-1]

@@ -186,7 +186,8 @@ def reprice(table, ids, var_cost, record: BasisRecord, *, gap: float, max_size: 
             nu[part], solved[part] = np.where(eq[part], y[:, 0], 0.0), good
             take = slot[rq[use]] >= 0
             y_active[take] = y[slot[rq[use][take]], column[use][take]]
-    sparse = np.flatnonzero(ok & (size > SIZES[-1]))
+    tried = ok & (size > SIZES[-1])  # the sparse systems: refused ones are marked not stable below
+    sparse = np.flatnonzero(tried)
     if sparse.size:
         slot = np.full(q_count, -1)
         slot[sparse] = np.arange(sparse.size)
@@ -194,7 +195,6 @@ def reprice(table, ids, var_cost, record: BasisRecord, *, gap: float, max_size: 
         nu[sparse], solved[sparse] = np.where(eq[sparse], y[start[:-1]], 0.0), good
         take = slot[rq[use]] >= 0
         y_active[take] = y[start[slot[rq[use][take]]] + column[use][take]]
-    tried = ok & (size > SIZES[-1])
     ok &= solved
 
     # the certificate: c . x - D(nu, y)
