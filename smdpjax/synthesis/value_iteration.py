@@ -26,6 +26,8 @@ import functools
 import jax
 import jax.numpy as jnp
 
+from .compiler import backup_jit
+
 
 def _set_rows(v, rows, values):
     return _replicated(v.at[rows].set(values), rows)
@@ -69,7 +71,7 @@ def default_policy_sweeps(abstraction) -> int:
     return FROZEN_SWEEPS if abstraction.freezable else abstraction.num_actions
 
 
-@functools.partial(jax.jit, static_argnames=("max_iterations", "policy_sweeps"))
+@backup_jit(static_argnames=("max_iterations", "policy_sweeps"))
 def optimize_lower(abstraction, v0, tol, max_iterations: int, policy0=None, policy_sweeps: int | None = None,
                    sweep_stop=SWEEP_STOP):
     """Returns ``(p_low (N+1,), policy over rows (R,), backups, last change)``.
@@ -154,7 +156,7 @@ def top_values(abstraction):
     return abstraction.initial_values("safety")
 
 
-@functools.partial(jax.jit, static_argnames=("adversary", "max_iterations"))
+@backup_jit(static_argnames=("adversary", "max_iterations"))
 def evaluate(abstraction, v0, adversary: str, tol, max_iterations: int):
     """Value of a single-action abstraction (a strategy already applied, see ``restrict``) against
     a minimizing or maximizing adversary, iterated from ``v0``: ``(values, iterations, change)``.
@@ -188,7 +190,7 @@ def evaluate(abstraction, v0, adversary: str, tol, max_iterations: int):
 CERTIFY_STEPS = 64
 
 
-@functools.partial(jax.jit, static_argnames=("max_steps",))
+@backup_jit(static_argnames=("max_steps",))
 def certified_start(abstraction, candidate, v0, slack, margin, max_steps: int = CERTIFY_STEPS):
     """A start for ``evaluate(..., "min")`` from a guess of the pessimistic value, if it is
     provably below it: ``(start (N+1,), certified bool, backups run)``, for a single-action
@@ -251,7 +253,7 @@ def warm_margins(slack, tol):
     return jnp.concatenate([capped, tol * jnp.asarray(BEYOND_TOL, dtype)])
 
 
-@jax.jit
+@backup_jit
 def warm_start(abstraction, guess, v0, slack, tol):
     """``certified_start`` with the first margin of ``warm_margins(slack, tol)`` that passes.
 
@@ -283,7 +285,7 @@ def warm_start(abstraction, guess, v0, slack, tol):
 COMPLEMENT_ROUNDING = 2.0 ** -52
 
 
-@functools.partial(jax.jit, static_argnames=("horizon", "with_upper"))
+@backup_jit(static_argnames=("horizon", "with_upper"))
 def finite_horizon(abstraction, v0, horizon: int, policy=None, with_upper: bool = True):
     """T = ``horizon`` backups. ``policy``: ``None`` (optimized, time-dependent), ``(R,)``
     (stationary) or ``(T, R)`` (``policy[t]`` is the action at time t).
@@ -311,14 +313,17 @@ def finite_horizon(abstraction, v0, horizon: int, policy=None, with_upper: bool 
         # run again. v is then a bound at every later step too (v = T~(v) <= T(v) + e for the
         # lower bound, T monotone and non-expansive; the rounding allowance still counts every
         # step), and a deterministic backup would return v again anyway. The optimistic bounds of
-        # the temperature rows settle after one of 15 steps.
+        # the temperature rows settle after one of 15 steps. The strategy's actions are picked
+        # once, not in every backup; with one action there is nothing to pick.
+        fixed = abstraction if abstraction.num_actions == 1 else abstraction.restrict(policy)
+
         def backup(v, adversary):
             if adversary == "min":
-                return _set_rows(v, rows, abstraction.q_values(v, "min", policy))
+                return _set_rows(v, rows, fixed.q_values(v, "min")[:, 0])
             # max_gamma <gamma, v> = 1 - min_gamma <gamma, 1 - v> (every gamma sums to 1): exactly 1
             # where a row can keep all its mass on states of value 1, where the sum of the masses
             # times 1 rounds to 1 +- 1 ulp and would never settle (COMPLEMENT_ROUNDING)
-            return _set_rows(v, rows, 1.0 - abstraction.q_values(1.0 - v, "min", policy))
+            return _set_rows(v, rows, 1.0 - fixed.q_values(1.0 - v, "min")[:, 0])
 
         def settling(v, adversary, settled):
             new = jax.lax.cond(settled, lambda: v, lambda: backup(v, adversary))

@@ -120,4 +120,7 @@ def test_optimistic_bound_as_a_complement_and_its_rounding(setup):
         extra = HORIZON * value_iteration.COMPLEMENT_ROUNDING
         assert stationary.rounding_allowance == pytest.approx(per_time.rounding_allowance + extra, rel=1e-12, abs=0)
         assert extra > 1e-6 * per_time.rounding_allowance  # the test can tell the two apart
-        np.testing.assert_array_equal(np.asarray(stationary.lower), np.asarray(per_time.lower))
+        # the same backups, the stationary strategy's actions picked once instead of per step
+        # (other fusions of the same sums: the last bits may differ)
+        np.testing.assert_allclose(np.asarray(stationary.lower), np.asarray(per_time.lower), rtol=0,
+                                   atol=HORIZON * 2 * ab.rounding_per_backup())
