@@ -35,7 +35,6 @@ holds the values that have converged while the others go on).
 from __future__ import annotations
 
 import dataclasses
-import functools
 from collections.abc import Callable, Sequence
 
 import jax
@@ -47,6 +46,7 @@ from .abstraction.imdp import IMDP
 from .gradients import ClusterStructure
 from .partition import NONTERMINAL
 from .synthesis import value_iteration
+from .synthesis.compiler import backup_jit
 
 __all__ = ["BatchSolution", "SweepResult", "solve", "batched_synthesis", "sweep", "auto_batch_size",
            "choose_batch_size"]
@@ -159,7 +159,7 @@ def choose_batch_size(structure: ClusterStructure, batch: int, platform: str | N
     return max(1, min(int(batch), auto_batch_size(structure)))
 
 
-@functools.partial(jax.jit, static_argnames=("probabilities", "kind", "max_iterations", "batch_size"))
+@backup_jit(static_argnames=("probabilities", "kind", "max_iterations", "batch_size"))
 def _batched(structure, params, tol, probabilities, kind, max_iterations, batch_size):
     def one(prob, rest):
         return solve(structure.abstraction(prob, rest, kind), tol, max_iterations)

@@ -1,4 +1,5 @@
-"""How the backup loops are compiled: ``backup_jit``, ``jax.jit`` with ``backup_compiler_options``.
+"""How the backup loops are compiled: ``backup_jit``, ``jax.jit`` with ``backup_compiler_options``
+(``value_iteration``'s loops and ``sweep.batched_synthesis``).
 
 On the CPU, XLA hands reductions and elementwise fusions to YNNPACK by default (jaxlib 0.10).
 The backups' reductions are short (the cells of one block, the entries of one list) and many,

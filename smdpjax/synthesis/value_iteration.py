@@ -21,8 +21,6 @@ structure, all of it inside ``lax.while_loop`` / ``lax.scan`` under ``jit``:
 
 from __future__ import annotations
 
-import functools
-
 import jax
 import jax.numpy as jnp
 
