@@ -353,10 +353,11 @@ def wants_count_table(n_states: int, num_blocks: int, block_slots: int) -> bool:
 def block_ranking(w, cells_of, count_table: bool = False):
     """What every list's inner problem shares, from one sort of ``w`` per backup: ``(rank,
     w_sorted, within, sorted_rank, sorted_w, inverse, blocks_below, prefix_below,
-    padded_cells)``, every block's cells in increasing rank (padding last; one extra all-padding
-    block), where each cell slot lands in that order (``inverse``) and, per ``k`` in ``0..N+1``,
-    the blocks with a cell ranked below ``k`` and the sum of those blocks' lowest values; with
-    ``count_table``, ``count (N + 1, B + 2)``: the cells of each block ranked below each ``k``."""
+    padded_cells, cell_count)``, every block's cells in increasing rank (padding last; one extra
+    all-padding block), where each cell slot lands in that order (``inverse``), per ``k`` in
+    ``0..N+1`` the blocks with a cell ranked below ``k`` and the sum of those blocks' lowest
+    values, and each block's number of cells ``(B + 2,)``; with ``count_table``, ``count (N + 1,
+    B + 2)``: the cells of each block ranked below each ``k``."""
     n_states = w.shape[0]
     rank, w_sorted, _ = value_ranking(w)
     num_blocks, size = cells_of.shape
@@ -375,7 +376,7 @@ def block_ranking(w, cells_of, count_table: bool = False):
     blocks_below = jnp.cumsum(jnp.zeros(n_states + 1, jnp.int32).at[sorted_min_rank + 1].add(1, mode="drop"))
     ranking = dict(rank=rank, w_sorted=w_sorted, within=within, sorted_rank=sorted_rank, sorted_w=sorted_w,
                    inverse=inverse, blocks_below=blocks_below, prefix_below=block_prefix[blocks_below],
-                   padded_cells=padded_cells)
+                   padded_cells=padded_cells, cell_count=jnp.sum(padded_cells < n_states, -1))
     if count_table:
         ranking["count"] = _count_table(rank, padded_cells)
     return ranking
@@ -449,7 +450,9 @@ def _sparse_two_layer_min(w, ranking, blocks, block_lower, block_upper, fine_slo
     has_lower = lower_slot < t_count * size
     lo = jnp.where(has_lower, lower_value, 0.0)
     # capacities in rank order: upper_rest on every cell, the listed upper bounds, minus lower bounds
-    cap = jnp.where(ranking["sorted_rank"][pair_block] < n_states, upper_rest, 0.0).reshape(-1)
+    # a block's cells come first in its rank order, its padding last
+    cells = ranking["cell_count"][pair_block][:, None]
+    cap = jnp.where(jnp.arange(size, dtype=cells.dtype) < cells, upper_rest, 0.0).reshape(-1)
     cap = cap.at[sorted_slot(fine_slot, chunk_row)].set(fine_upper, mode="drop")
     cap = cap.at[sorted_slot(lower_slot)].add(-lo, mode="drop").reshape(count, size)
     # per block met: sum of lower bounds and their cost
