@@ -3,12 +3,12 @@
 
 On the CPU, XLA hands reductions and elementwise fusions to YNNPACK by default (jaxlib 0.10).
 The backups' reductions are short (the cells of one block, the entries of one list) and many,
-and there each library call costs more than XLA's own loop: the 2I-MDP backup of the 3-D
-temperature (1728 rows, 27-cell blocks) took 12.6 ms against 9.9 ms without them, the 2-D
-unicycle's (8 actions) 35.1 against 34.9 ms; the IMDP and SMDP backups are unchanged (within
-noise), and so are their values bit for bit (docs/performance.md). Only products keep YNNPACK.
-The 2I-MDP's values may differ in the last bits (another order of the same sums), which the
-rounding allowance covers: its bound does not depend on the order.
+and there each library call costs more than XLA's own loop: one 2I-MDP backup of the 3-D
+temperature (1728 rows, 27-cell blocks) took 15.4 and 12.6 ms with them, 11.0 and 9.9 ms
+without; the IMDP and SMDP backups are unchanged within noise, and so are their values bit for
+bit (docs/performance.md). Only products keep YNNPACK. The 2I-MDP's values may differ in the
+last bits (another order of the same sums), which the rounding allowance covers: its bound does
+not depend on the order.
 """
 
 from __future__ import annotations
