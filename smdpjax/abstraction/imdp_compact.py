@@ -156,8 +156,7 @@ class CompactIMDP(AbstractionMixin):
                                                                   upper_add=upper_add, id_dtype=index_dtype(n_states))
         slots = c_succ.shape[0] * c_succ.shape[2] / num_rows  # per row and action
         return cls(chunk_succ=c_succ, chunk_upper=encode(c_upper), chunk_row=jnp.asarray(chunk_row),
-                   lower_succ=l_succ,
-                   lower_value=l_value, upper_rest=jnp.asarray(upper_rest), rows=jnp.asarray(rows, jnp.int32),
+                   lower_succ=l_succ, lower_value=l_value, upper_rest=jnp.asarray(upper_rest), rows=jnp.asarray(rows, jnp.int32),
                    labels=labels, width=int(widths.max()), list_rows=num_rows,
                    **block_fields(chunk_row, num_rows, c_succ.shape[1], slots))
 
