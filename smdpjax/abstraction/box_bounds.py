@@ -108,10 +108,11 @@ def region_bounds(cells, periodic, boxes: IndexBoxes, prob, block=None, noise_sh
             raise ValueError(f"noise_shape {list(noise_shape)} has {math.prod(noise_shape)} cells, the boxes {c}")
     step = _rows_per_chunk(r, a)
 
-    single = _chunk_rows(boxes, 0, step) if step >= r else None  # one chunk: sliced once
+    # One chunk: the rows themselves, flattened inside each program (no copy, no padding rows).
+    single = boxes if step >= r else None
 
     def chunks():  # sliced lazily (a copy of all boxes at once can be gigabytes), the last one
-        if single is not None:  # padded with copies of its last row: one compiled shape
+        if single is not None:  # padded with copies of its last row (one compiled shape)
             yield single
             return
         for s in range(0, r, step):
@@ -151,6 +152,7 @@ def region_bounds(cells, periodic, boxes: IndexBoxes, prob, block=None, noise_sh
 def _piece_bounds(geometry, size, boxes: IndexBoxes, anchor, prob, noise_shape, axes):
     """``(lower, upper, listed)``: a chunk's window bounds (``_window_bounds``, or
     ``_factored_window_bounds`` along ``axes``) and the most regions any of its rows lists."""
+    boxes = _flat_rows(boxes)
     if axes is None:
         lower, upper = _window_bounds(geometry, size, boxes, anchor, prob)
     else:
@@ -184,6 +186,13 @@ def _chunk_rows(boxes: IndexBoxes, start, size: int) -> IndexBoxes:
         return jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), boxes)
     take = jnp.minimum(start + jnp.arange(size), rows - 1)
     return jax.tree.map(lambda x: x[take].reshape((-1,) + x.shape[2:]), boxes)
+
+
+def _flat_rows(boxes: IndexBoxes) -> IndexBoxes:
+    """``(R, A, C)`` boxes as ``(R A, C)`` boxes (a chunk of ``_chunk_rows`` is already flat)."""
+    if boxes.start.ndim == 3:
+        return boxes
+    return jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), boxes)
 
 
 @functools.partial(jax.jit, static_argnums=(1, 2, 3))
@@ -243,6 +252,7 @@ def _region_ranges(geometry, boxes: IndexBoxes, d: int):
 def _windows(geometry, boxes: IndexBoxes):
     """Per row and dimension the first region coordinate of its window and the window's extent,
     each ``(rows, n)`` int32."""
+    boxes = _flat_rows(boxes)
     periodic = geometry[1]
     anchors, extents = [], []
     for d, m in enumerate(_regions_per_dim(geometry)):
@@ -411,6 +421,7 @@ def _noise_dependence(boxes: IndexBoxes, noise_shape):
     or length) changes along noise axis k of the C-order grid ``noise_shape``, and whether every
     box's sink flag is the "or" of per-axis flags (those set for every noise cell of a row
     sharing that axis' index)."""
+    boxes = _flat_rows(boxes)
     rows, m = boxes.sink.shape[0], len(noise_shape)
     shape = (rows,) + tuple(noise_shape)
     first = lambda x, k: jax.lax.slice_in_dim(x, 0, 1, axis=1 + k)

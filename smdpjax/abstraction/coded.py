@@ -81,6 +81,9 @@ def encode(x, max_codes: int = MAX_CODES):
         return x  # not a concrete float64 array (traced: under jit the values are unknown)
     x = jnp.asarray(x)
     host_bits = np.asarray(x).reshape(-1).view(np.uint64)  # no copy on the CPU
+    if x.size <= _SAMPLES[0]:  # small: one sort of all entries
+        table, codes = np.unique(host_bits, return_inverse=True)
+        return _coded(x, table, codes) if table.size <= max_codes else x
     table = np.zeros(0, np.uint64)
     for sample in _SAMPLES + (x.size, x.size):  # ever larger strided samples, then all entries
         whole = sample >= x.size
@@ -95,10 +98,17 @@ def encode(x, max_codes: int = MAX_CODES):
             return x
     else:  # pragma: no cover - the second pass over all entries finds every value in the table
         return x
-    code_dtype = np.uint8 if table.size <= 256 else np.uint16
-    if x.size * np.dtype(code_dtype).itemsize + table.nbytes >= x.nbytes:
+    return _coded(x, table, codes)
+
+
+def _coded(x, table_bits, codes):
+    """``x`` as codes ``(n,)`` (host or device) into ``table_bits`` (sorted), where smaller."""
+    code_dtype = np.uint8 if table_bits.size <= 256 else np.uint16
+    if x.size * np.dtype(code_dtype).itemsize + table_bits.nbytes >= x.nbytes:
         return x
-    values = jnp.asarray(table.view(np.float64))
+    values = jnp.asarray(table_bits.view(np.float64))
+    if isinstance(codes, np.ndarray):  # converted and shaped on the host: no device programs
+        return Coded(codes=jnp.asarray(codes.astype(code_dtype).reshape(x.shape)), table=values)
     return Coded(codes=jnp.asarray(codes, code_dtype).reshape(x.shape), table=values)
 
 

@@ -62,44 +62,77 @@ from .imdp_compact import block_fields, chunk_lists, in_row_blocks, list_stats, 
 
 def block_layout(grid, block) -> tuple[np.ndarray, np.ndarray]:
     """``(block_of (N+2,), cells_of (B+1, S))``: the block of every state (sentinel -> B+1) and the
-    cells of every block (the sink block B holds the sink), padded with ``N + 1``."""
+    cells of every block (the sink block B holds the sink), padded with ``N + 1``. Read-only
+    (kept for the next model of the same grid and block shape)."""
     block = np.broadcast_to(np.asarray(block, np.int64), (grid.n,))
     if np.any(block <= 0):
         raise ValueError(f"block shape must be positive, got {block.tolist()}")
-    shape = -(-grid.cells // block)  # blocks per dimension
-    multi = np.stack(np.unravel_index(np.arange(grid.num_cells), tuple(grid.cells)), axis=-1)
+    return _layout(tuple(int(c) for c in grid.cells), tuple(int(b) for b in block))[:2]
+
+
+@functools.lru_cache(maxsize=16)
+def _layout(cells: tuple, block: tuple):
+    """``block_layout``'s arrays, then ``offset_of (N+2,)`` (each state's cell slot in its block,
+    0 for the sentinel) and the three on the device."""
+    cells, block = np.array(cells), np.array(block)
+    num_cells = int(np.prod(cells))
+    shape = -(-cells // block)  # blocks per dimension
+    multi = np.stack(np.unravel_index(np.arange(num_cells), tuple(cells)), axis=-1)
     block_multi = multi // block
     block_of_cell = np.ravel_multi_index(tuple(block_multi.T), tuple(shape))
     num_blocks = int(np.prod(shape))
     size = int(np.prod(block))
     offset = np.ravel_multi_index(tuple((multi % block).T), tuple(block))
-    cells_of = np.full((num_blocks + 1, size), grid.num_cells + 1, np.int32)
-    cells_of[block_of_cell, offset] = np.arange(grid.num_cells)
-    cells_of[num_blocks, 0] = grid.sink
+    cells_of = np.full((num_blocks + 1, size), num_cells + 1, np.int32)
+    cells_of[block_of_cell, offset] = np.arange(num_cells)
+    cells_of[num_blocks, 0] = num_cells  # the sink
     block_of = np.concatenate([block_of_cell, [num_blocks, num_blocks + 1]]).astype(np.int32)
-    return block_of, cells_of
+    offset_of = np.zeros(num_cells + 2, np.int32)
+    valid = cells_of <= num_cells
+    offset_of[cells_of[valid]] = np.nonzero(valid)[1]
+    host = (block_of, cells_of, offset_of)
+    for a in host:
+        a.flags.writeable = False
+    return host + tuple(jnp.asarray(a) for a in host)
 
 
 def default_block(clusters: GridClusters) -> tuple:
     """Block shape = the median extent of the reachable sets per dimension (a block then holds
     about one reachable set), at least 2 cells."""
-    lengths = jnp.asarray(clusters.boxes.length)
-    lengths = lengths.reshape(-1, lengths.shape[-1])
-    most = int(jnp.max(lengths, initial=0))
-    counts = np.array(_extent_counts(lengths, 1 << (most + 1).bit_length()))
+    lengths = clusters.boxes.length
+    n = lengths.shape[-1]
+    counts = np.array(_extent_counts(lengths, EXTENT_BINS))  # extents from EXTENT_BINS - 1 on in one bin
     counts[:, 0] = 0  # boxes empty in some dimension (counted there in every dimension)
     if not counts.any():
-        return (2,) * lengths.shape[-1]
+        return (2,) * n
+    middle = counts.sum(axis=1, keepdims=True) // 2  # the upper middle order statistic's index
+    if np.any(np.cumsum(counts, axis=1)[:, -2] <= middle[:, 0]):  # a middle extent is in the last bin
+        bins = 1 << (int(_longest_extent(lengths)) + 1).bit_length()
+        counts = np.array(_extent_counts(lengths, bins))
+        counts[:, 0] = 0
     return tuple(int(max(2, round(_median_count(c)))) for c in counts)
+
+
+# Extents counted one by one when the block shape is chosen (longer ones share the last bin and
+# are counted again only where a median falls among them).
+EXTENT_BINS = 64
+
+
+@jax.jit
+def _longest_extent(lengths):
+    return jnp.max(lengths, initial=0)
 
 
 @functools.partial(jax.jit, static_argnums=1)
 def _extent_counts(lengths, bins: int):
-    """``(n, bins)`` per dimension how many boxes of ``lengths (M, n)`` have each extent, the
-    boxes empty in any dimension counted as extent 0 (in one pass: numpy's mask and bincounts
-    took 0.7 s of the 3-D unicycle's 2I-MDP build, 14M boxes)."""
+    """``(n, bins)`` per dimension how many boxes of ``lengths (..., n)`` have each extent (at
+    least ``bins - 1`` in the last bin), the boxes empty in any dimension counted as extent 0 (in
+    one pass: numpy's mask and bincounts took 0.7 s of the 3-D unicycle's 2I-MDP build, 14M
+    boxes)."""
+    lengths = lengths.reshape(-1, lengths.shape[-1])
     empty = jnp.any(lengths <= 0, axis=1)
-    return jnp.stack([jnp.bincount(jnp.where(empty, 0, lengths[:, d]), length=bins) for d in range(lengths.shape[1])])
+    return jnp.stack([jnp.bincount(jnp.where(empty, 0, jnp.minimum(lengths[:, d], bins - 1)), length=bins)
+                      for d in range(lengths.shape[1])])
 
 
 def _median_count(counts) -> float:
@@ -167,7 +200,9 @@ class TwoLayerIMDP(AbstractionMixin):
         dimension (default ``default_block``), ``chunk``: slots per chunk of the fine entries
         (default ``imdp_compact.chunk_width`` of their counts)."""
         block = default_block(clusters) if block is None else tuple(np.broadcast_to(np.asarray(block), (grid.n,)))
-        block_of, cells_of = block_layout(grid, block)
+        block_layout(grid, block)  # checks the shape
+        _, cells_of, _, block_of, cells_of_device, offset_of = _layout(tuple(int(c) for c in grid.cells),
+                                                                       tuple(int(b) for b in block))
         num_blocks = cells_of.shape[0] - 1
         blocks, block_lower, block_upper = region_bounds(grid.cells, grid.periodic, clusters.boxes, clusters.prob,
                                                          block=block, noise_shape=clusters.noise_shape)
@@ -182,10 +217,7 @@ class TwoLayerIMDP(AbstractionMixin):
                                            noise_shape=clusters.noise_shape)
         sentinel = grid.num_states  # N + 1 (N cells and the sink)
         size = cells_of.shape[1]
-        offset_of = np.zeros(sentinel + 1, np.int32)  # each state's cell slot in its block
-        valid = cells_of <= grid.sink
-        offset_of[cells_of[valid]] = np.nonzero(valid)[1]
-        slot = _fine_slots(succ, blocks, jnp.asarray(block_of), jnp.asarray(offset_of), size)
+        slot = _fine_slots(succ, blocks, block_of, offset_of, size)
         _, widths, num_lower = list_stats(succ, lower, sentinel)  # region_bounds lists the entries first
         widths, num_lower = np.maximum(np.asarray(widths), 1), int(num_lower)
         c_slot, c_upper, chunk_row, l_slot, l_value = chunk_lists(slot, lower, upper, succ, sentinel, widths, chunk,
@@ -199,7 +231,7 @@ class TwoLayerIMDP(AbstractionMixin):
         return cls(blocks=blocks, block_lower=block_lower, block_upper=block_upper,
                    chunk_slot=c_slot, chunk_upper=encode(c_upper), chunk_row=jnp.asarray(chunk_row), lower_slot=l_slot,
                    lower_value=l_value,
-                   cells_of=jnp.asarray(cells_of), upper_rest=rest, rows=jnp.asarray(clusters.rows, jnp.int32),
+                   cells_of=cells_of_device, upper_rest=rest, rows=jnp.asarray(clusters.rows, jnp.int32),
                    labels=jnp.asarray(grid.state_labels), block_shape=tuple(int(b) for b in block),
                    list_rows=int(widths.size), block_pairs=pairs, **blocking)
 

@@ -46,6 +46,21 @@ def test_encode_leaves_arrays_it_cannot_shrink():
     assert jax.jit(lambda a: encode(a) is a)(few)  # traced: left as it is
 
 
+@pytest.mark.parametrize("distinct", [3, 300])
+def test_encode_of_a_small_array_sorts_it_once_bit_for_bit(distinct):
+    from smdpjax.abstraction import coded
+
+    values = np.concatenate([np.arange(1, distinct - 2) / 7, [0.0, -0.0, np.nan]])
+    x = np.random.default_rng(distinct).permutation(np.repeat(values, 4)).reshape(-1, 2)
+    assert x.size <= coded._SAMPLES[0]  # the one-sort path
+    got = encode(jnp.asarray(x), max_codes=1 << 16)
+    assert isinstance(got, Coded) and got.table.shape == (distinct,) and got.shape == x.shape
+    assert got.codes.dtype == (np.uint8 if distinct <= 256 else np.uint16)
+    np.testing.assert_array_equal(np.asarray(got.decode()).view(np.uint64), x.view(np.uint64))
+    if distinct > 256:  # more values than uint8 codes: left as it is by default
+        assert not isinstance(encode(jnp.asarray(x)), Coded)
+
+
 def _drift(x, u, w):
     return x + 0.1 * (jnp.array([jnp.cos(u[0]), jnp.sin(u[0])]) + w)
 

@@ -248,12 +248,13 @@ def test_blocks_of_rows_equal_all_rows(name, rows_per_block, assert_same_q_value
 
 
 @pytest.mark.parametrize("seed", range(4))
-def test_default_block_is_the_median_extent_of_the_nonempty_boxes(seed):
+@pytest.mark.parametrize("longest", [40, 130])  # 130: medians among extents past EXTENT_BINS
+def test_default_block_is_the_median_extent_of_the_nonempty_boxes(seed, longest):
     from smdpjax.abstraction.clusters import IndexBoxes
     from smdpjax.abstraction.twolayer import default_block
 
     rng = np.random.default_rng(seed)
-    length = rng.integers(1, [4, 9, 40], (30, 2, 5, 3)).astype(np.int32)
+    length = rng.integers(1, [4, 9, longest], (30, 2, 5, 3)).astype(np.int32)
     length[rng.random(length.shape[:-1]) < 0.3, rng.integers(0, 3)] = 0  # empty boxes do not count
     boxes = IndexBoxes(start=jnp.zeros_like(length), length=jnp.asarray(length), sink=jnp.zeros(length.shape[:-1], bool))
     flat = length.reshape(-1, 3)
