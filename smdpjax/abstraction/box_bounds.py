@@ -65,7 +65,7 @@ FACTOR_SAMPLE_ROWS = 16
 MAP_BATCH = 16
 
 
-def region_bounds(cells, periodic, boxes: IndexBoxes, prob, block=None, noise_shape=None):
+def region_bounds(cells, periodic, boxes: IndexBoxes, prob, block=None, noise_shape=None, counts: bool = False):
     """Lemma 1 bounds of every region the boxes of a row meet, as padded successor lists.
 
     Args:
@@ -81,6 +81,8 @@ def region_bounds(cells, periodic, boxes: IndexBoxes, prob, block=None, noise_sh
             at most and the sink flags are an "or" of per-axis flags (``_noise_dependence``,
             checked per chunk), the sums are computed as products over the axes
             (``_factored_window_bounds``), with the same result bit for bit.
+        counts: also return ``list_counts`` of the lists (in the program that shapes them, where
+            there is one chunk).
     Returns:
         ``(regions, lower, upper)``, each ``(R, A, W)``: per row the regions met, in increasing
         order (the sink region ``num_regions`` last), padded with ``num_regions + 1`` (bounds 0
@@ -136,7 +138,9 @@ def region_bounds(cells, periodic, boxes: IndexBoxes, prob, block=None, noise_sh
         widths.append(int(listed))
         chunk_width = max(1, min(upper.shape[-1], _quantized_width(widths[-1])))
         if single is not None:  # one chunk: compacted, cut to its width and shaped in one program
-            return _compact_lists(geometry, size, anchor, lower, upper, chunk_width, widths[-1], sentinel, (r, a))
+            lists = _compact_lists(geometry, size, anchor, lower, upper, chunk_width, widths[-1], sentinel, (r, a),
+                                   counts)
+            return lists[:3] + (lists[3:],) if counts else lists
         pieces.append(_compact(geometry, size, anchor, lower, upper, chunk_width))
     width = max(widths)  # padding rows copy a real row, so they never widen the lists
 
@@ -145,7 +149,19 @@ def region_bounds(cells, periodic, boxes: IndexBoxes, prob, block=None, noise_sh
     pieces = [_to_width(piece, width, sentinel, last_rows if i == len(pieces) - 1 else piece[0].shape[0])
               for i, piece in enumerate(pieces)]
     ids, lower, upper = (jnp.concatenate(arrays).reshape(r, a, width) for arrays in zip(*pieces))
+    if counts:
+        return ids, lower, upper, _list_counts(ids, lower, sentinel)
     return ids, lower, upper
+
+
+def list_counts(ids, lower, sentinel: int):
+    """Of padded lists ``(R, A, K)`` (listed: ``ids < sentinel``): the widest list of each row
+    ``(R,)`` and the most positive lower bounds of any list (a scalar)."""
+    listed = ids < sentinel
+    return jnp.sum(listed, axis=-1).max(axis=1), jnp.max(jnp.sum((lower > 0) & listed, axis=-1), initial=0)
+
+
+_list_counts = jax.jit(list_counts, static_argnums=2)
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1, 5, 6))
@@ -160,12 +176,15 @@ def _piece_bounds(geometry, size, boxes: IndexBoxes, anchor, prob, noise_shape, 
     return lower, upper, jnp.max(jnp.sum(upper > 0, axis=-1))
 
 
-@functools.partial(jax.jit, static_argnums=(0, 1, 5, 6, 7, 8))
-def _compact_lists(geometry, size, anchor, lower, upper, chunk_width: int, width: int, sentinel: int, lead: tuple):
-    """``_compact`` of the only chunk, cut to ``width`` slots and shaped ``lead + (width,)``."""
+@functools.partial(jax.jit, static_argnums=(0, 1, 5, 6, 7, 8, 9))
+def _compact_lists(geometry, size, anchor, lower, upper, chunk_width: int, width: int, sentinel: int, lead: tuple,
+                   counts: bool = False):
+    """``_compact`` of the only chunk, cut to ``width`` slots and shaped ``lead + (width,)``
+    (``counts``: then their ``list_counts``)."""
     rows = math.prod(lead)
-    return tuple(x.reshape(lead + (width,)) for x in _to_width(_compact(geometry, size, anchor, lower, upper,
-                                                                        chunk_width), width, sentinel, rows))
+    lists = tuple(x.reshape(lead + (width,)) for x in _to_width(_compact(geometry, size, anchor, lower, upper,
+                                                                         chunk_width), width, sentinel, rows))
+    return lists + list_counts(lists[0], lists[1], sentinel) if counts else lists
 
 
 def _rows_per_chunk(rows: int, actions: int) -> int:

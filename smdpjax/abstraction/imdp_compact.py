@@ -119,10 +119,11 @@ class CompactIMDP(AbstractionMixin):
         ``list_chunk_width`` of the lists' widths)."""
         from .box_bounds import region_bounds
 
-        succ, lower, upper = region_bounds(grid.cells, grid.periodic, clusters.boxes, clusters.prob,
-                                           noise_shape=clusters.noise_shape)
+        succ, lower, upper, counts = region_bounds(grid.cells, grid.periodic, clusters.boxes, clusters.prob,
+                                                   noise_shape=clusters.noise_shape, counts=True)
         rest = jnp.asarray(clusters.prob_rest)
-        return cls.from_lists(succ, lower, upper, rest, clusters.rows, grid.state_labels, chunk=chunk, upper_add=rest)
+        return cls.from_lists(succ, lower, upper, rest, clusters.rows, grid.state_labels, chunk=chunk, upper_add=rest,
+                              counts=counts)
 
     @classmethod
     def from_imdp(cls, imdp, *, chunk: int | None = None) -> "CompactIMDP":
@@ -132,10 +133,12 @@ class CompactIMDP(AbstractionMixin):
 
     @classmethod
     def from_lists(cls, successors, lower, upper, upper_rest, rows, labels, *,
-                   chunk: int | None = None, upper_add=None) -> "CompactIMDP":
+                   chunk: int | None = None, upper_add=None, counts=None) -> "CompactIMDP":
         """From padded lists ``(R, A, K)`` (padding ``>= N + 1``, anywhere in a list), as an
         ``IMDP`` holds them (``upper_add``: a scalar the listed ``upper`` bounds do not include yet,
-        added to them). Concrete arrays only (the number of chunks depends on the widths)."""
+        added to them; ``counts``: where the listed entries are known to come first, their
+        ``box_bounds.list_counts``). Concrete arrays only (the number of chunks depends on the
+        widths)."""
         labels = jnp.asarray(labels)
         n_states = int(labels.shape[0])
         successors, lower, upper = jnp.asarray(successors), jnp.asarray(lower), jnp.asarray(upper)
@@ -145,7 +148,7 @@ class CompactIMDP(AbstractionMixin):
         num_rows = int(successors.shape[0])
         if num_rows == 0:
             raise ValueError("an IMDP needs at least one row (non-terminal cell)")
-        gaps, widths, num_lower = list_stats(successors, lower, n_states)
+        gaps, widths, num_lower = (False, *counts) if counts is not None else list_stats(successors, lower, n_states)
         if bool(gaps):  # padding inside a list: listed entries first
             front = jnp.argsort(successors >= n_states, axis=-1, stable=True)
             successors, lower, upper = (jnp.take_along_axis(a, front, axis=-1) for a in (successors, lower, upper))
@@ -267,10 +270,10 @@ def list_stats(successors, lower, n_states: int):
     """Of padded lists ``(R, A, K)`` (padding ``>= n_states``) in one pass: whether padding comes
     before a listed entry anywhere, the widest list of each row ``(R,)`` and the most positive
     lower bounds of any list."""
+    from .box_bounds import list_counts
+
     listed = successors < n_states
-    gaps = jnp.any(listed[..., 1:] & ~listed[..., :-1])
-    widths = jnp.sum(listed, axis=-1).max(axis=1)
-    return gaps, widths, jnp.max(jnp.sum((lower > 0) & listed, axis=-1), initial=0)
+    return jnp.any(listed[..., 1:] & ~listed[..., :-1]), *list_counts(successors, lower, n_states)
 
 
 def chunk_width(widths, overhead: int = CHUNK_OVERHEAD, candidates=CHUNK_WIDTHS, one_per_row: bool = True) -> int:

@@ -57,7 +57,7 @@ from .clusters import index_dtype
 from .coded import decoded, encode, map_entries
 from .grid_clusters import GridClusters
 from .imdp import value_ranking
-from .imdp_compact import block_fields, chunk_lists, in_row_blocks, list_stats, most_per_block
+from .imdp_compact import block_fields, chunk_lists, in_row_blocks, most_per_block
 
 
 def block_layout(grid, block) -> tuple[np.ndarray, np.ndarray]:
@@ -213,12 +213,12 @@ class TwoLayerIMDP(AbstractionMixin):
         met_count = max(1, int(met_per_list.max(initial=1)))
         if met_count < blocks.shape[-1]:
             blocks, block_lower, block_upper = (x[..., :met_count] for x in (blocks, block_lower, block_upper))
-        succ, lower, upper = region_bounds(grid.cells, grid.periodic, clusters.boxes, clusters.prob,
-                                           noise_shape=clusters.noise_shape)
+        succ, lower, upper, (widths, num_lower) = region_bounds(grid.cells, grid.periodic, clusters.boxes,
+                                                                clusters.prob, noise_shape=clusters.noise_shape,
+                                                                counts=True)
         sentinel = grid.num_states  # N + 1 (N cells and the sink)
         size = cells_of.shape[1]
         slot = _fine_slots(succ, blocks, block_of, offset_of, size)
-        _, widths, num_lower = list_stats(succ, lower, sentinel)  # region_bounds lists the entries first
         widths, num_lower = np.maximum(np.asarray(widths), 1), int(num_lower)
         c_slot, c_upper, chunk_row, l_slot, l_value = chunk_lists(slot, lower, upper, succ, sentinel, widths, chunk,
                                                                   num_lower, met_count * size, upper_add=rest,
