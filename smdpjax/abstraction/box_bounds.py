@@ -111,10 +111,12 @@ def region_bounds(cells, periodic, boxes: IndexBoxes, prob, block=None, noise_sh
     step = _rows_per_chunk(r, a)
 
     # One chunk: the rows themselves, flattened inside each program (no copy, no padding rows).
+    # More: sliced lazily (a copy of all boxes at once can be gigabytes), the last one padded with
+    # copies of its last row (one compiled shape).
     single = boxes if step >= r else None
 
-    def chunks():  # sliced lazily (a copy of all boxes at once can be gigabytes), the last one
-        if single is not None:  # padded with copies of its last row (one compiled shape)
+    def chunks():
+        if single is not None:
             yield single
             return
         for s in range(0, r, step):
