@@ -51,6 +51,7 @@ import numpy as np
 
 from .._pytree import pytree_dataclass, static_field
 from .base import AbstractionMixin, check_adversary
+from .box_bounds import list_counts, region_bounds
 from .clusters import index_dtype
 from .coded import decoded, encode, map_entries
 from .imdp import first_rank_filling, value_ranking
@@ -117,8 +118,6 @@ class CompactIMDP(AbstractionMixin):
         """Lemma 1 from the clusters' index boxes (``box_bounds.region_bounds``, as
         ``IMDP.from_clusters``), stored compactly; ``chunk``: the chunk width (default
         ``list_chunk_width`` of the lists' widths)."""
-        from .box_bounds import region_bounds
-
         succ, lower, upper, counts = region_bounds(grid.cells, grid.periodic, clusters.boxes, clusters.prob,
                                                    noise_shape=clusters.noise_shape, counts=True)
         rest = jnp.asarray(clusters.prob_rest)
@@ -270,8 +269,6 @@ def list_stats(successors, lower, n_states: int):
     """Of padded lists ``(R, A, K)`` (padding ``>= n_states``) in one pass: whether padding comes
     before a listed entry anywhere, the widest list of each row ``(R,)`` and the most positive
     lower bounds of any list."""
-    from .box_bounds import list_counts
-
     listed = successors < n_states
     return jnp.any(listed[..., 1:] & ~listed[..., :-1]), *list_counts(successors, lower, n_states)
 

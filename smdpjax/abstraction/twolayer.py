@@ -64,10 +64,15 @@ def block_layout(grid, block) -> tuple[np.ndarray, np.ndarray]:
     """``(block_of (N+2,), cells_of (B+1, S))``: the block of every state (sentinel -> B+1) and the
     cells of every block (the sink block B holds the sink), padded with ``N + 1``. Read-only
     (kept for the next model of the same grid and block shape)."""
+    return _grid_layout(grid, block)[:2]
+
+
+def _grid_layout(grid, block) -> tuple:
+    """``_layout`` of ``grid`` with ``block`` cells per block and dimension (checked)."""
     block = np.broadcast_to(np.asarray(block, np.int64), (grid.n,))
     if np.any(block <= 0):
         raise ValueError(f"block shape must be positive, got {block.tolist()}")
-    return _layout(tuple(int(c) for c in grid.cells), tuple(int(b) for b in block))[:2]
+    return _layout(tuple(int(c) for c in grid.cells), tuple(int(b) for b in block))
 
 
 @functools.lru_cache(maxsize=16)
@@ -200,9 +205,7 @@ class TwoLayerIMDP(AbstractionMixin):
         dimension (default ``default_block``), ``chunk``: slots per chunk of the fine entries
         (default ``imdp_compact.chunk_width`` of their counts)."""
         block = default_block(clusters) if block is None else tuple(np.broadcast_to(np.asarray(block), (grid.n,)))
-        block_layout(grid, block)  # checks the shape
-        _, cells_of, _, block_of, cells_of_device, offset_of = _layout(tuple(int(c) for c in grid.cells),
-                                                                       tuple(int(b) for b in block))
+        _, cells_of, _, block_of, cells_of_device, offset_of = _grid_layout(grid, block)
         num_blocks = cells_of.shape[0] - 1
         blocks, block_lower, block_upper = region_bounds(grid.cells, grid.periodic, clusters.boxes, clusters.prob,
                                                          block=block, noise_shape=clusters.noise_shape)
