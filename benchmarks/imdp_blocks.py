@@ -29,10 +29,10 @@ def with_blocks(abstraction, budget: int | None):
     def blocked(a):
         if budget is None:
             return a
+        if isinstance(a, TwoLayerIMDP):  # its met pairs per block change with the blocks
+            return a.with_block_budget(budget)
         rows = a.list_rows or a.num_rows
-        slots = a.num_chunks * a.chunk / rows  # per row and action, as the classes count them
-        if isinstance(a, TwoLayerIMDP):
-            slots += a.num_block_slots * a.cells_of.shape[1]
+        slots = a.num_chunks * a.chunk / rows  # per row and action, as the class counts them
         return dataclasses.replace(a, **block_fields(np.asarray(a.chunk_row), rows, a.num_actions, slots, budget))
 
     if isinstance(abstraction, (CompactIMDP, TwoLayerIMDP)):

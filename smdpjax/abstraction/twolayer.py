@@ -36,8 +36,8 @@ on every cell, the listed bounds scattered over it) before the greedy, one row o
 (list, block) pair (``block_pairs``: rows meet 30 of the T = 81 block slots on average on the
 4-room temperature row), so only that transient, not the stored abstraction, has ``S`` entries
 per met block (row 38: 75 MB stored, the upper bounds ``coded``, instead of 2211 MB). On the CPU
-the rows are solved a block at a time (``imdp_compact.in_row_blocks``), so that transient is a
-block's, small enough to stay in the cache through the bisection.
+the rows are solved a block at a time (``imdp_compact.in_row_blocks``, ``BLOCK_SLOTS``), so that
+transient is a block's.
 """
 
 from __future__ import annotations
@@ -58,6 +58,14 @@ from .coded import decoded, encode, map_entries
 from .grid_clusters import GridClusters
 from .imdp import value_ranking
 from .imdp_compact import block_fields, chunk_lists, in_row_blocks, most_per_block
+
+# Slots (T S plus the fine entries, per row and action) per block of rows on the CPU: 4x the
+# IMDP's ``imdp_compact.BLOCK_SLOTS``. Each block pays ~0.4 ms of fixed cost (the layout's
+# programs and 15 bisection steps of small programs), which outweighed keeping its capacities
+# in L2: one backup, ms, at 2^19 -> 2^21 slots: 4-room temperature 440 -> 375, 3-D unicycle
+# (37 noise cells) 1180 -> 1030-1100, (101) 995 -> 945, 2-D unicycle 60x60 217 -> 193; 2^20
+# and 2^22 in between or equal, 2^23 slower (docs/performance.md).
+BLOCK_SLOTS = 1 << 21
 
 
 def block_layout(grid, block) -> tuple[np.ndarray, np.ndarray]:
@@ -228,15 +236,21 @@ class TwoLayerIMDP(AbstractionMixin):
                                                                   id_dtype=index_dtype(met_count * size + 1))
         # per row and action: the met blocks' capacities (T S, laid out in every backup) and the entries
         slots = met_count * size + c_slot.shape[0] * c_slot.shape[2] / widths.size
-        blocking = block_fields(chunk_row, int(widths.size), int(blocks.shape[1]), slots)
-        pairs = (most_per_block(met_per_list.sum(1), blocking["block_rows"]),
-                 most_per_block(met_per_list.max(1), blocking["strategy_blocks"][0]))
+        blocking = _blocking(chunk_row, met_per_list, slots, BLOCK_SLOTS)
         return cls(blocks=blocks, block_lower=block_lower, block_upper=block_upper,
                    chunk_slot=c_slot, chunk_upper=encode(c_upper), chunk_row=jnp.asarray(chunk_row), lower_slot=l_slot,
                    lower_value=l_value,
                    cells_of=cells_of_device, upper_rest=rest, rows=jnp.asarray(clusters.rows, jnp.int32),
                    labels=jnp.asarray(grid.state_labels), block_shape=tuple(int(b) for b in block),
-                   list_rows=int(widths.size), block_pairs=pairs, **blocking)
+                   list_rows=int(widths.size), **blocking)
+
+    def with_block_budget(self, budget: int) -> "TwoLayerIMDP":
+        """The same abstraction, its rows solved in blocks of about ``budget`` slots on the CPU (0:
+        all rows at once); the default is ``BLOCK_SLOTS``. The same values."""
+        rows = self.list_rows or self.num_rows
+        met_per_list = np.asarray(self.blocks[:rows] < self.cells_of.shape[0]).sum(-1)
+        slots = self.num_block_slots * self.cells_of.shape[1] + self.num_chunks * self.chunk / rows
+        return dataclasses.replace(self, **_blocking(np.asarray(self.chunk_row), met_per_list, slots, budget))
 
     @property
     def num_actions(self) -> int:
@@ -326,6 +340,15 @@ class TwoLayerIMDP(AbstractionMixin):
         return (f"TwoLayerIMDP(|S|={self.num_states}, rows={r}, |A|={a}, block={'x'.join(map(str, self.block_shape))}"
                 f" ({self.cells_of.shape[0] - 1} blocks + sink), max blocks met={self.num_block_slots}, fine entries="
                 f"{self.num_chunks}x{self.chunk} slots, memory={self.nbytes / 1e6:.2f} MB)")
+
+
+def _blocking(chunk_row, met_per_list, slots: float, budget: int) -> dict:
+    """``block_rows``, ``block_chunks``, ``strategy_blocks`` (``imdp_compact.block_fields``) and
+    ``block_pairs`` of rows ``met_per_list (R, A)`` (met blocks per list) costing ``slots`` each."""
+    blocking = block_fields(chunk_row, met_per_list.shape[0], met_per_list.shape[1], slots, budget)
+    blocking["block_pairs"] = (most_per_block(met_per_list.sum(1), blocking["block_rows"]),
+                               most_per_block(met_per_list.max(1), blocking["strategy_blocks"][0]))
+    return blocking
 
 
 @functools.partial(jax.jit, static_argnums=(3, 4))

@@ -247,6 +247,27 @@ def test_blocks_of_rows_equal_all_rows(name, rows_per_block, assert_same_q_value
     assert_same_q_values(blocked, whole, values, strategy, atol=1e-15)
 
 
+def test_block_budget_sets_blocks_and_their_pairs(assert_same_q_values):
+    """``with_block_budget`` re-blocks the rows and lays the capacities out for the most met
+    pairs of its blocks (all rows' pairs at budget 0): the same values as all rows at once."""
+    from smdpjax.abstraction.imdp_compact import most_per_block
+
+    system, grid, noise = PROBLEMS["gaussian"]
+    tl = TwoLayerIMDP.from_clusters(grid, compute_grid_clusters(system, grid, noise), block=(2, 2), chunk=3)
+    met = np.asarray(tl.blocks < tl.cells_of.shape[0]).sum(-1)  # (R, A)
+    slots = tl.num_block_slots * tl.cells_of.shape[1] + tl.num_chunks * tl.chunk / tl.num_rows
+    whole = tl.with_block_budget(0)
+    assert whole.block_rows == 0 and whole.block_pairs == (met.sum(), met.max(1).sum())
+    blocked = tl.with_block_budget(int(7 * tl.num_actions * slots) + 1)
+    assert blocked.block_rows == 7 and blocked.strategy_blocks[0] == int(7 * tl.num_actions)
+    assert blocked.block_pairs == (most_per_block(met.sum(1), 7), most_per_block(met.max(1), blocked.strategy_blocks[0]))
+    assert blocked.block_pairs[0] < whole.block_pairs[0]
+    rng = np.random.default_rng(8)
+    strategy = jnp.asarray(rng.integers(0, tl.num_actions, tl.num_rows), jnp.int32)
+    values = [jnp.asarray(rng.uniform(0, 1, grid.num_states)).at[-1].set(0.0) for _ in range(2)]
+    assert_same_q_values(blocked, whole, values, strategy, atol=1e-15)
+
+
 @pytest.mark.parametrize("seed", range(4))
 @pytest.mark.parametrize("longest", [40, 130])  # 130: medians among extents past EXTENT_BINS
 def test_default_block_is_the_median_extent_of_the_nonempty_boxes(seed, longest):
