@@ -247,6 +247,37 @@ def test_blocks_of_rows_equal_all_rows(name, rows_per_block, assert_same_q_value
     assert_same_q_values(blocked, whole, values, strategy, atol=1e-15)
 
 
+def test_fine_slots_find_each_successors_block_in_its_list():
+    """The slot ``t S + i`` of each listed successor against NumPy's search of each list's sorted
+    blocks."""
+    from smdpjax.abstraction import twolayer
+
+    cells, block = (9, 8), (3, 2)
+    block_of, cells_of, offset_of = (np.asarray(a) for a in twolayer._layout(cells, block)[:3])
+    num_blocks, size = cells_of.shape[0] - 1, cells_of.shape[1]
+    n = int(np.prod(cells))  # cells; the sink is n, padding n + 1
+    rng = np.random.default_rng(1)
+    lists, t_count, width = (5, 3), 6, 10
+    blocks = np.full(lists + (t_count,), num_blocks + 1, np.int16)
+    succ = np.full(lists + (width,), n + 1, np.int32)
+    for r in np.ndindex(lists):
+        met = np.sort(rng.choice(num_blocks + 1, rng.integers(1, t_count + 1), replace=False))
+        blocks[r][:met.size] = met
+        states = np.concatenate([cells_of[b][cells_of[b] <= n] for b in met])  # the sink is block B's
+        chosen = rng.choice(states, min(width - 2, states.size), replace=False)
+        succ[r][:chosen.size] = chosen
+        succ[r] = rng.permutation(succ[r])
+    got = np.asarray(twolayer._fine_slots(jnp.asarray(succ), jnp.asarray(blocks), jnp.asarray(block_of),
+                                          jnp.asarray(offset_of), size))
+    listed = succ <= n
+    t = np.zeros_like(succ)
+    for r in np.ndindex(lists):
+        t[r] = np.searchsorted(blocks[r], block_of[np.minimum(succ[r], n + 1)])
+    expected = np.where(listed, t * size + offset_of[np.minimum(succ, n + 1)], t_count * size)
+    np.testing.assert_array_equal(got, expected)
+    assert listed.sum() > 20 and (~listed).sum() > 0
+
+
 def test_block_budget_sets_blocks_and_their_pairs(assert_same_q_values):
     """``with_block_budget`` re-blocks the rows and lays the capacities out for the most met
     pairs of its blocks (all rows' pairs at budget 0): the same values as all rows at once."""
