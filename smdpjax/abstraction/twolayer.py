@@ -234,9 +234,7 @@ class TwoLayerIMDP(AbstractionMixin):
         c_slot, c_upper, chunk_row, l_slot, l_value = chunk_lists(slot, lower, upper, succ, sentinel, widths, chunk,
                                                                   num_lower, met_count * size, upper_add=rest,
                                                                   id_dtype=index_dtype(met_count * size + 1))
-        # per row and action: the met blocks' capacities (T S, laid out in every backup) and the entries
-        slots = met_count * size + c_slot.shape[0] * c_slot.shape[2] / widths.size
-        blocking = _blocking(chunk_row, met_per_list, slots, BLOCK_SLOTS)
+        blocking = _blocking(chunk_row, met_per_list, met_count * size, c_slot.shape[0] * c_slot.shape[2], BLOCK_SLOTS)
         return cls(blocks=blocks, block_lower=block_lower, block_upper=block_upper,
                    chunk_slot=c_slot, chunk_upper=encode(c_upper), chunk_row=jnp.asarray(chunk_row), lower_slot=l_slot,
                    lower_value=l_value,
@@ -249,8 +247,9 @@ class TwoLayerIMDP(AbstractionMixin):
         all rows at once); the default is ``BLOCK_SLOTS``. The same values."""
         rows = self.list_rows or self.num_rows
         met_per_list = np.asarray(self.blocks[:rows] < self.cells_of.shape[0]).sum(-1)
-        slots = self.num_block_slots * self.cells_of.shape[1] + self.num_chunks * self.chunk / rows
-        return dataclasses.replace(self, **_blocking(np.asarray(self.chunk_row), met_per_list, slots, budget))
+        return dataclasses.replace(self, **_blocking(np.asarray(self.chunk_row), met_per_list,
+                                                     self.num_block_slots * self.cells_of.shape[1],
+                                                     self.num_chunks * self.chunk, budget))
 
     @property
     def num_actions(self) -> int:
@@ -342,10 +341,12 @@ class TwoLayerIMDP(AbstractionMixin):
                 f"{self.num_chunks}x{self.chunk} slots, memory={self.nbytes / 1e6:.2f} MB)")
 
 
-def _blocking(chunk_row, met_per_list, slots: float, budget: int) -> dict:
+def _blocking(chunk_row, met_per_list, capacities: int, entries: int, budget: int) -> dict:
     """``block_rows``, ``block_chunks``, ``strategy_blocks`` (``imdp_compact.block_fields``) and
-    ``block_pairs`` of rows ``met_per_list (R, A)`` (met blocks per list) costing ``slots`` each."""
-    blocking = block_fields(chunk_row, met_per_list.shape[0], met_per_list.shape[1], slots, budget)
+    ``block_pairs`` of rows ``met_per_list (R, A)`` (met blocks per list); a row and action costs
+    its ``capacities`` (T S, laid out in every backup) and its share of the ``entries`` (C W)."""
+    rows = met_per_list.shape[0]
+    blocking = block_fields(chunk_row, rows, met_per_list.shape[1], capacities + entries / rows, budget)
     blocking["block_pairs"] = (most_per_block(met_per_list.sum(1), blocking["block_rows"]),
                                most_per_block(met_per_list.max(1), blocking["strategy_blocks"][0]))
     return blocking
