@@ -780,3 +780,37 @@ def test_repriced_bases_give_the_synthesis_of_an_lp_solve_each_time(unicycle_12)
     for field in ("lower", "upper", "lower_optimal"):
         np.testing.assert_allclose(np.asarray(getattr(a, field)), np.asarray(getattr(b, field)), rtol=0, atol=1e-8)
     np.testing.assert_array_equal(np.asarray(a.policy), np.asarray(b.policy))
+
+
+@pytest.mark.parametrize("chunked", [False, True])
+def test_frozen_terms_give_the_certificate_of_their_multipliers(small, monkeypatch, chunked):
+    """``cluster_terms`` then ``shifted_min`` is ``certified_min`` with the same multipliers (all
+    rows at once or in overlapping chunks of rows), and a frozen view's backup is that value."""
+    from smdpjax.abstraction import mimdp as mimdp_module
+
+    grid, _, mimdp, _ = small
+    rng = np.random.default_rng(7)
+    imdp = mimdp.relaxation
+    shape = (*mimdp.lp_index.shape, mimdp.num_clusters, 2)
+    w = jnp.asarray(rng.uniform(0, 1, grid.num_states))
+    # the LPs' multipliers on half the rows, random ones (some beyond the cap) on the others
+    random = rng.uniform(0, 5, shape) * (rng.random(shape) < 0.3)
+    lam = jnp.where(jnp.asarray(rng.random(shape[:2]) < 0.5)[..., None, None], mimdp.multipliers(w, mimdp.lp_index),
+                    jnp.asarray(random))
+    polytope = (imdp.successors, imdp.lower, imdp.upper)
+    cap = mimdp.multiplier_cap
+    reference = np.asarray(certified_min(w, *polytope, imdp.upper_rest, mimdp.cluster_members, mimdp.cluster_lower,
+                                         mimdp.cluster_upper, lam, cap))
+    if chunked:
+        monkeypatch.setattr(mimdp_module, "_SHIFTED_ENTRIES_PER_CHUNK", 7 * imdp.width)
+    shift, offset = mimdp_module.cluster_terms(imdp.width, mimdp.cluster_members, mimdp.cluster_lower,
+                                               mimdp.cluster_upper, lam, cap, rows_per_chunk=5 if chunked else None)
+    assert shift.shape == (*mimdp.lp_index.shape, imdp.width) and offset.shape == mimdp.lp_index.shape
+    got = np.asarray(mimdp_module.shifted_min(w, *polytope, imdp.upper_rest, shift, offset))
+    np.testing.assert_allclose(got, reference, rtol=0, atol=1e-15)
+    assert np.any(got > np.asarray(imdp.q_values(w, "min")) + 1e-6)  # the multipliers do lift some rows
+    frozen = mimdp._frozen_at(lam)
+    np.testing.assert_allclose(q_values(frozen, w), reference, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(q_values(frozen, -w + 1, "max"), -np.asarray(certified_min(
+        w - 1, *polytope, imdp.upper_rest, mimdp.cluster_members, mimdp.cluster_lower, mimdp.cluster_upper, lam, cap)),
+        rtol=0, atol=1e-15)
