@@ -557,6 +557,30 @@ def test_greedy_q_values_screen_out_actions_without_changing_the_backup(case, re
         np.testing.assert_array_equal(screened.argmax(axis=1)[clear], full.argmax(axis=1)[clear])
 
 
+def test_greedy_certifies_only_the_pairs_whose_lps_it_solved(unicycle_12, monkeypatch):
+    """With at most ``GREEDY_CERTIFIED_PAIRS_PER_ROW`` times the rows solved LPs, a greedy backup
+    certifies only those (row, action) pairs (the others keep their IMDP value); with more, every
+    pair. Either way the values are those of certifying every pair, to rounding."""
+    from smdpjax.abstraction import mimdp as mimdp_module
+
+    grid, _, mimdp = unicycle_12
+    v = jnp.asarray(np.random.default_rng(4).uniform(0, 1, mimdp.num_states)).at[-1].set(0.0)
+    low = np.asarray(mimdp.relaxation.q_values(v, "min"))
+    high = np.asarray(mimdp.screen.q_values(v, "min"))
+    margin = mimdp._screen_margin()
+    solved = int(((high >= low.max(axis=1, keepdims=True) - margin) & ~(high <= low + margin)).sum())
+    fits = -(-solved // mimdp.num_rows)  # pairs per row that hold every solved LP
+    assert 2 <= fits < mimdp.num_actions
+    values = {}
+    for per_row in (fits - 1, fits, mimdp.num_actions):  # every pair (fallback), the solved ones, all
+        monkeypatch.setattr(mimdp_module, "GREEDY_CERTIFIED_PAIRS_PER_ROW", per_row)
+        values[per_row] = np.asarray(jax.jit(lambda m, x: m.greedy_q_values(x))(mimdp, v))
+    full = values[mimdp.num_actions]
+    for per_row in (fits - 1, fits):
+        np.testing.assert_allclose(values[per_row], full, rtol=0, atol=1e-14)
+    assert np.any(full > low + 1e-6)  # the LPs lift some pairs above their IMDP value
+
+
 def test_screening_does_not_change_synthesis(unicycle_12):
     grid, clusters, screened = unicycle_12
     plain = MIMDP.from_clusters(grid, clusters, screen_actions=False)
