@@ -295,7 +295,7 @@ class MIMDP(AbstractionMixin):
         The multipliers' terms that do not depend on the values (``cluster_terms``: each listed
         successor's cost shift and the constant) are computed here once, so that a backup of the
         view is an interval problem with shifted costs and no scatter of member terms (a
-        strategy's sweep of Table 1's row 3: ~3x faster), to the same values bit for bit.
+        strategy's sweep of Table 1's row 3: ~3x faster): the same operations on the same multipliers.
         """
         minimize = check_adversary(adversary)
         w = v if minimize else -v
@@ -576,8 +576,9 @@ def cluster_terms(width: int, slots, cluster_lower, cluster_upper, lam, cap=np.i
     costs: ``(shift (..., width), offset (...))``, the shift ``M^T (lambda+ - lambda-)`` of each
     listed successor's cost and ``<lambda+, lo> - <lambda-, up>``.
 
-    ``shifted_min(w, ..., shift, offset)`` is then ``certified_min`` with the same multipliers,
-    bit for bit: a frozen view (``MIMDP.freeze``) computes these once instead of at every backup.
+    ``shifted_min(w, ..., shift, offset)`` is then ``certified_min`` with the same multipliers
+    (the same operations, hence the same rounding allowance): a frozen view (``MIMDP.freeze``)
+    computes these once instead of at every backup.
     Arguments as in ``certified_min`` (``width``: the ``K`` of the successor lists).
     """
     batch = cluster_lower.shape[:-1]
