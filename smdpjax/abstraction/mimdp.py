@@ -331,12 +331,12 @@ class MIMDP(AbstractionMixin):
         imdp = self.relaxation
         pick = lambda a: jnp.take_along_axis(a, actions.reshape((-1, 1) + (1,) * (a.ndim - 2)), axis=1)[:, 0]
         chosen = (lambda a: a) if actions is None else (lambda a: a.map(pick) if isinstance(a, ClusterRuns) else pick(a))
-        lp = chosen(self.lp_index)
         w = v if minimize else -v
         if self.frozen is not None:  # the multipliers' terms were computed when they were frozen
             value = _shifted_min(w, *(chosen(a) for a in (imdp.successors, imdp.lower, imdp.upper)), imdp.upper_rest,
                                  chosen(self.frozen_shift), chosen(self.frozen_offset))
             return value if minimize else -value
+        lp = chosen(self.lp_index)
         imdp_value = None
         if self.screen is not None:
             # the relaxation's own backup (a block of rows at a time), 6x faster than the
