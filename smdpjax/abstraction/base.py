@@ -51,6 +51,12 @@ class AbstractionMixin:
         tell cheaply which actions cannot win overrides it to skip their work (the MI-MDP)."""
         return self.q_values(v, "min")
 
+    def greedy_backup(self, v):
+        """``(q (R, A), lam)``: ``greedy_q_values(v)`` and, for a ``freezable`` class, the
+        multipliers that certify it, which a loop may freeze for the greedy strategy's sweeps;
+        ``lam`` is ``None`` here (a class with no multipliers, or one that does not keep them)."""
+        return self.greedy_q_values(v), None
+
     def initial_values(self, objective: str = "reach_avoid"):
         """``(N+1,)`` p^0: the indicator of S_reach (reach-avoid) or of the safe cells (safety)."""
         if objective not in ("reach_avoid", "safety"):

@@ -388,8 +388,21 @@ class MIMDP(AbstractionMixin):
         lambda = 0, which certifies the IMDP value it already has), as one batch of
         ``GREEDY_CERTIFIED_PAIRS_PER_ROW`` times the rows when no more were solved, else every pair.
         """
-        if self.screen is None or self.frozen is not None:  # nothing to skip without LPs
-            return self.q_values(v, "min")
+        return self.greedy_backup(v)[0]
+
+    def greedy_backup(self, v):
+        """``(q (R, A), lam (R, A, J, 2))``: ``greedy_q_values(v)`` and the multipliers that
+        certify it (zeros on the pairs whose LPs it did not solve; ``None`` for a frozen view),
+        which a loop may freeze for the greedy strategy's sweeps (``from_multipliers``): they
+        are exact at ``v`` on every pair they certify."""
+        if self.frozen is not None:
+            return self.q_values(v, "min"), None
+        if self.screen is None:  # nothing to skip
+            lam = self.multipliers(v, self.lp_index)
+            value = _certified_min(v, self.relaxation.successors, self.relaxation.lower, self.relaxation.upper,
+                                   self.relaxation.upper_rest, self.cluster_members, self.cluster_lower,
+                                   self.cluster_upper, lam, self.multiplier_cap)
+            return value, lam
         imdp = self.relaxation
         low = imdp.q_values(v, "min")
         high = self.screen.q_values(v, "min")
@@ -416,14 +429,19 @@ class MIMDP(AbstractionMixin):
                                   imdp_value=low)
 
         if budget == rows * actions:
-            return _unless_all_zero(lam, every, low)
+            return _unless_all_zero(lam, every, low), lam
 
         def few():  # at most ``budget`` LPs solved: certify those pairs only (padding dropped)
             pairs = jnp.nonzero(solve.reshape(-1), size=budget, fill_value=rows * actions)[0]
             return low.reshape(-1).at[pairs].set(certify(pairs), mode="drop").reshape(rows, actions)
 
-        return jax.lax.cond(jnp.any(lam > 0), lambda: jax.lax.cond(jnp.sum(solve) <= budget, few, every),
-                            lambda: low)
+        q = jax.lax.cond(jnp.any(lam > 0), lambda: jax.lax.cond(jnp.sum(solve) <= budget, few, every), lambda: low)
+        return q, lam
+
+    def from_multipliers(self, lam) -> "MIMDP":
+        """This MI-MDP frozen at the multipliers ``lam (R, A, J, 2)`` (any nonnegative ones give a
+        view on the conservative side; see ``freeze``)."""
+        return self._frozen_at(lam)
 
     def multipliers(self, w, lp_index, direction: int = 0):
         """``(*lp_index.shape, J, 2)`` multipliers (lambda+, lambda-) of the LPs for costs ``w``,

@@ -690,6 +690,54 @@ def test_frozen_sweeps_reach_the_values_of_an_lp_at_every_sweep(unicycle_12):
                                    rtol=0, atol=1e-6, err_msg=name)
 
 
+@pytest.mark.parametrize("screen", [False, True])
+def test_greedy_backup_multipliers_certify_its_values(small_clusters, screen):
+    """``greedy_backup`` returns ``greedy_q_values`` and the multipliers it solved for: frozen at
+    them (no LP call), the view gives those values back at the same vector on every pair whose LP
+    was solved, and stays on the conservative side of the LP value at any other vector."""
+    grid, clusters, extra = small_clusters
+    mimdp = MIMDP.from_clusters(grid, clusters, extra_clusters=extra, screen_actions=screen)
+    rng = np.random.default_rng(21)
+    v = jnp.asarray(rng.uniform(0, 1, grid.num_states)).at[-1].set(0.0)
+    other = jnp.asarray(rng.uniform(0, 1, grid.num_states)).at[-1].set(0.0)
+    q, lam = jax.jit(lambda m, x: m.greedy_backup(x))(mimdp, v)
+    np.testing.assert_array_equal(np.asarray(q), np.asarray(jax.jit(lambda m, x: m.greedy_q_values(x))(mimdp, v)))
+    assert lam.shape == (*mimdp.lp_index.shape, mimdp.num_clusters, 2) and bool(jnp.all(lam >= 0))
+    frozen = mimdp.from_multipliers(lam)
+    calls = mimdp.lps.stats["calls"]
+    at_v, elsewhere = q_values(frozen, v), q_values(frozen, other)
+    assert mimdp.lps.stats["calls"] == calls
+    solved = np.asarray(jnp.any(lam > 0, axis=(-2, -1)))
+    assert solved.any() and (screen or solved.mean() > 0.5)
+    np.testing.assert_allclose(at_v[solved], np.asarray(q)[solved], rtol=0, atol=1e-12)
+    assert np.all(at_v <= np.asarray(q) + 1e-12)
+    assert np.all(elsewhere <= q_values(mimdp, other) + 1e-9)
+    assert np.all(elsewhere >= q_values(mimdp.relaxation, other) - 1e-12)  # never below lambda = 0
+    # a frozen view has no LPs to keep multipliers of
+    fq, flam = frozen.greedy_backup(v)
+    assert flam is None
+    np.testing.assert_array_equal(np.asarray(fq), at_v)
+
+
+def test_sweeps_from_the_greedy_multipliers_save_lps_not_tightness(unicycle_12, monkeypatch):
+    """The first round of strategy sweeps after a greedy backup reuses its multipliers instead of
+    solving the strategy's LPs again: fewer LP calls, the same bounds to the tolerance."""
+    from smdpjax.synthesis import value_iteration
+
+    grid, clusters, _ = unicycle_12
+    sols, calls = {}, {}
+    for reuse in (True, False):
+        monkeypatch.setattr(value_iteration, "REUSE_GREEDY_MULTIPLIERS", reuse)
+        mimdp = MIMDP.from_clusters(grid, clusters, lp_backend="highs")  # a new model: a new trace
+        sols[reuse] = sj.synthesize(mimdp, tol=1e-9)
+        calls[reuse] = mimdp.lps.stats["calls"]
+        assert sols[reuse].converged
+    assert calls[True] < calls[False]
+    for name in ("lower", "lower_optimal", "upper"):
+        np.testing.assert_allclose(np.asarray(getattr(sols[True], name)), np.asarray(getattr(sols[False], name)),
+                                   rtol=0, atol=1e-6, err_msg=name)
+
+
 @pytest.mark.parametrize("backend", ["clarabel", "highs"])
 def test_unsolved_lps_are_reported_with_their_cell_and_action(backend):
     if backend == "highs":
