@@ -285,8 +285,9 @@ class ClusterLPs:
         z_rows = np.concatenate([place(i, pc[4]) for i, pc in enumerate(pieces)]).astype(np.int64)
         z_pos = np.concatenate([np.full(pc[5].size, i) for i, pc in enumerate(pieces)]).astype(np.int64)
         z_target = np.concatenate([pc[5] for pc in pieces])
+        var_pos = np.concatenate([np.arange(self._lps.var_start[p], self._lps.var_start[p + 1]) for p in part])
         return dict(solver=solver, lock=threading.Lock(), count=len(part), cost_pos=cost_pos, cost_col=cost_col,
-                    z_rows=z_rows, z_pos=z_pos, z_target=z_target)
+                    z_rows=z_rows, z_pos=z_pos, z_target=z_target, ids=np.asarray(part, np.int64), var_pos=var_pos)
 
     def _highs_model(self, p, cost):
         """LP ``p`` with costs ``cost`` as the arrays of ``Highs.passModel``: bounds on the
@@ -355,17 +356,17 @@ class ClusterLPs:
             solution = h.getSolution()
             status = h.modelStatusToString(h.getModelStatus())
             row_dual = np.asarray(solution.row_dual)
-            if self.reprice:
-                record, lock = self._record(direction), self._record_locks[direction]
-                if status in _OPTIMAL:
-                    # a solve from the last basis that took no iteration: re-price it next time
-                    # (after a first solve, from no basis, too)
-                    stable = basis is None or h.getInfo().simplex_iteration_count == 0
-                    record.record(self._lps, p, solution, row_dual, lambda: _basic_variables(h), lock,
-                                  stable=stable)
-                else:
-                    with lock:
-                        record.forget(p)
+            # the optimal vertex (``vertices``) and, when re-pricing, the basis
+            record, lock = self._record(direction), self._record_locks[direction]
+            if status in _OPTIMAL:
+                # a solve from the last basis that took no iteration: re-price it next time
+                # (after a first solve, from no basis, too)
+                stable = basis is None or h.getInfo().simplex_iteration_count == 0
+                record.record(self._lps, p, solution, row_dual, lambda: _basic_variables(h), lock,
+                              stable=stable, basis=self.reprice)
+            else:
+                with lock:
+                    record.forget(p)
         dual = row_dual[1:]
         table = self._lps
         cluster = table.cluster[table.row_start[int(p)]:table.row_start[int(p) + 1]]
@@ -453,23 +454,65 @@ class ClusterLPs:
         listed = succ < n_states
         table = np.zeros((ids.size, self.cost_width))
         table[:, :width] = np.where(listed, w[np.minimum(succ, n_states - 1)], 0.0)
-        need = int(self.buckets[ids].max(initial=0)) + 1
         if self.rest > 0 and np.any(self.buckets[ids] + self.has_rest[ids] > 0):
-            order = np.argsort(w, kind="stable")
-            rank = np.empty(n_states, np.int64)
-            rank[order] = np.arange(n_states)
-            pad = 4 * n_states + np.arange(width)  # keeps lr[i] - i nondecreasing over the padding
-            lr = np.sort(np.where(listed, rank[np.minimum(succ, n_states - 1)], pad), axis=1)
-            # the j-th cheapest unlisted state sits at global position j + #{i : lr[i] - i <= j};
-            # one searchsorted over all rows, each row offset by `big`
-            big = 8 * n_states
-            keys = (lr - np.arange(width) + big * np.arange(ids.size)[:, None]).ravel()
-            queries = np.arange(need) + big * np.arange(ids.size)[:, None]
-            counts = np.searchsorted(keys, queries.ravel(), side="right").reshape(ids.size, need)
-            counts -= width * np.arange(ids.size)[:, None]
-            pos = np.minimum(np.arange(need) + counts, n_states - 1)
-            table[:, width:width + need] = w[order[pos]]
+            cheapest = self.cheapest_unlisted(w, ids)
+            table[:, width:width + cheapest.shape[1]] = w[cheapest]
         return table
+
+    def cheapest_unlisted(self, w: np.ndarray, ids: np.ndarray) -> np.ndarray:
+        """``(Q, max buckets + 1)`` the cheapest states at costs ``w`` that LP ``ids[q]`` does not
+        list, in increasing order of cost (ties by state id): where its bucket variables and then
+        its remainder variable are priced (``cost_table``)."""
+        n_states, width = self.num_states, self.width
+        succ = self.succ[ids]
+        listed = succ < n_states
+        need = int(self.buckets[ids].max(initial=0)) + 1
+        order = np.argsort(w, kind="stable")
+        rank = np.empty(n_states, np.int64)
+        rank[order] = np.arange(n_states)
+        pad = 4 * n_states + np.arange(width)  # keeps lr[i] - i nondecreasing over the padding
+        lr = np.sort(np.where(listed, rank[np.minimum(succ, n_states - 1)], pad), axis=1)
+        # the j-th cheapest unlisted state sits at global position j + #{i : lr[i] - i <= j};
+        # one searchsorted over all rows, each row offset by `big`
+        big = 8 * n_states
+        keys = (lr - np.arange(width) + big * np.arange(ids.size)[:, None]).ravel()
+        queries = np.arange(need) + big * np.arange(ids.size)[:, None]
+        counts = np.searchsorted(keys, queries.ravel(), side="right").reshape(ids.size, need)
+        counts -= width * np.arange(ids.size)[:, None]
+        pos = np.minimum(np.arange(need) + counts, n_states - 1)
+        return order[pos]
+
+    def vertices(self, w, ids, direction: int = 0):
+        """Optimal points of the surrogate LPs ``ids (Q,)`` at costs ``w (N+1,)``, as the mass each
+        puts on states above the listed successors' lower bounds.
+
+        Solves (or re-prices) the LPs as ``multipliers`` does, then reads each one's optimal point:
+        a listed successor's variable is its mass above its lower bound; a bucket's mass goes to
+        the cheapest unlisted state of its rank at ``w``, the remainder's to the next one, where
+        the LP prices them (``cheapest_unlisted``), so ``sum mass * w`` is the LP's optimal value
+        less ``<lower, w>``. Returns ``(lp (E,), state (E,), mass (E,), solved (Q,) bool)``: the
+        COO entries (``lp``: position in ``ids``; positive masses only) and which LPs ended with
+        an optimum (an LP without one has no entries).
+        """
+        w = np.asarray(w, np.float64)
+        ids = np.ascontiguousarray(np.asarray(ids, np.int64).ravel())
+        self.multipliers(w, ids, direction)
+        table, width = self._lps, self.width
+        gv, vq = ranges(table.var_start[ids], table.var_start[ids + 1])
+        record = self._record(direction)
+        with self._record_locks[direction]:
+            solved = record.vertex[ids].copy()
+            mass = record.x[gv]
+        keep = solved[vq] & (mass > 0.0)
+        gv, vq, mass = gv[keep], vq[keep], mass[keep]
+        src = table.cost_src[gv].astype(np.int64)
+        listed = src < width
+        state = np.empty(src.size, np.int64)
+        state[listed] = self.succ[ids[vq[listed]], src[listed]]
+        if not listed.all():
+            cheapest = self.cheapest_unlisted(w, ids)
+            state[~listed] = cheapest[vq[~listed], src[~listed] - width]
+        return vq, state, mass, solved
 
     def multipliers(self, w, ids, direction: int = 0):
         """Nonnegative multipliers ``(*ids.shape, J, 2)`` (lambda+, lambda-) of the surrogate LPs
@@ -513,14 +556,16 @@ class ClusterLPs:
                 tasks = range(ids.size)
         elif self.block_size == 1:
             def run(i):
-                return [(i, self._solve_clarabel(self._clarabel_single(ids[i]), costs[i:i + 1], flat[i:i + 1]))]
+                return [(i, self._solve_clarabel(self._clarabel_single(ids[i]), costs[i:i + 1], flat[i:i + 1],
+                                                 direction))]
             tasks = range(ids.size)
         else:
             plan = self._plan(ids)
 
             def run(task):
                 lo, block = task
-                return [(lo, self._solve_clarabel(block, costs[lo:lo + block["count"]], flat[lo:lo + block["count"]]))]
+                return [(lo, self._solve_clarabel(block, costs[lo:lo + block["count"]], flat[lo:lo + block["count"]],
+                                                  direction))]
             tasks = plan
 
         tasks = list(tasks)
@@ -555,15 +600,20 @@ class ClusterLPs:
                       f"solves in this backup did not reach an optimum; ClusterLPs.failures lists them). Their "
                       f"multipliers still certify a sound bound, which may be loose.", RuntimeWarning, stacklevel=3)
 
-    @staticmethod
-    def _solve_clarabel(block, costs, out):
+    def _solve_clarabel(self, block, costs, out, direction):
         solver = block["solver"]
         with block["lock"]:  # a cached solver may be reached by two calls at once
             solver.update(q=costs[block["cost_pos"], block["cost_col"]])
             sol = solver.solve()
             z = np.asarray(sol.z)
+            x = np.asarray(sol.x)
         out[block["z_pos"], block["z_target"]] = np.maximum(z[block["z_rows"]], 0.0)
-        return str(sol.status)
+        status = str(sol.status)
+        record = self._record(direction)
+        with self._record_locks[direction]:  # the optimal point, for ``vertices`` (a block's LPs share a status)
+            record.x[block["var_pos"]] = x
+            record.vertex[block["ids"]] = status in _OPTIMAL
+        return status
 
     def reset(self):
         """Drop every solver, model and warm start (the next call sets them up again)."""

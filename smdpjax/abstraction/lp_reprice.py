@@ -51,11 +51,13 @@ class BasisRecord:
     """The last optimal solve of every LP (one record per adversary direction).
 
     Attributes (flat over the LP table's variables / cluster rows / LPs):
-        x: ``(V,)`` float64 the last optimal vertex.
+        x: ``(V,)`` float64 the last optimal vertex (the solver's optimal point; kept for every LP
+            that has one, ``vertex``, whether or not its basis is recorded).
         basic: ``(V,)`` bool the basic variables.
         active: ``(W,)`` bool the nonbasic cluster rows (at one of their sides).
         eq_active: ``(P,)`` bool the equality row is nonbasic.
-        known: ``(P,)`` bool the LP has a record.
+        known: ``(P,)`` bool the LP has a record (its basis, for re-pricing).
+        vertex: ``(P,)`` bool ``x`` holds the LP's last optimal point.
         stable: ``(P,)`` bool worth re-pricing: a basis small enough for the dense systems,
             or one that was still optimal last time (the solver took no iteration from it, or
             its re-pricing was accepted). A larger basis that the certificate refused waits for
@@ -69,11 +71,12 @@ class BasisRecord:
         self.eq_active = np.zeros(num_lps, bool)
         self.known = np.zeros(num_lps, bool)
         self.stable = np.zeros(num_lps, bool)
+        self.vertex = np.zeros(num_lps, bool)
 
-    def record(self, table, p: int, solution, row_dual, basic_variables, lock=None, stable: bool = True) -> None:
-        """Keep LP ``p``'s optimal vertex (``solution.col_value``) and its basis: the basic
-        variables and the nonbasic rows. ``solution``'s columns are read only for a basis small
-        enough to re-price (highspy copies them out at every read).
+    def record(self, table, p: int, solution, row_dual, basic_variables, lock=None, stable: bool = True,
+               basis: bool = True) -> None:
+        """Keep LP ``p``'s optimal vertex (``solution.col_value``) and, with ``basis``, its basis: the
+        basic variables and the nonbasic rows (a basis too large to re-price is not kept).
 
         Read from the duals where they tell (the solver sets the reduced cost of a basic variable
         and the dual of a basic row to exactly 0); where a zero dual leaves it open (a degenerate
@@ -83,14 +86,13 @@ class BasisRecord:
         ``stable``: the solve took no simplex iteration from the LP's last basis."""
         v0, v1 = table.var_start[p], table.var_start[p + 1]
         r0, r1 = table.row_start[p], table.row_start[p + 1]
+        x = np.asarray(solution.col_value, np.float64)
         nonbasic_rows = np.asarray(row_dual) != 0.0
         # the basis has as many basic variables as nonbasic rows, at least the rows of nonzero
         # dual: too many of those, and nothing else is read
-        if nonbasic_rows.sum() > MAX_SIZE:
-            with lock or contextlib.nullcontext():
-                self.known[p] = False
+        if not basis or nonbasic_rows.sum() > MAX_SIZE:
+            self.keep_point(table, p, x, lock)
             return
-        x = np.asarray(solution.col_value, np.float64)
         basic = np.asarray(solution.col_dual, np.float64) == 0.0
         if basic.sum() != nonbasic_rows.sum():
             listed = np.asarray(basic_variables(), np.int64)
@@ -99,23 +101,32 @@ class BasisRecord:
             nonbasic_rows = np.ones(r1 - r0 + 1, bool)
             nonbasic_rows[-1 - listed[listed < 0]] = False
         if nonbasic_rows.sum() > MAX_SIZE:  # too large to re-price: not worth recording
-            with lock or contextlib.nullcontext():
-                self.known[p] = False
+            self.keep_point(table, p, x, lock)
             return
         with lock or contextlib.nullcontext():
             self.x[v0:v1] = x
+            self.vertex[p] = True
             self.basic[v0:v1] = basic
             self.active[r0:r1] = nonbasic_rows[1:]
             self.eq_active[p] = nonbasic_rows[0]
             self.known[p] = True
             self.stable[p] = stable or nonbasic_rows.sum() <= SIZES[-1]
 
+    def keep_point(self, table, p: int, x, lock=None) -> None:
+        """Keep LP ``p``'s optimal point ``x`` without a basis (not re-priced)."""
+        with lock or contextlib.nullcontext():
+            self.x[table.var_start[p]:table.var_start[p + 1]] = x
+            self.vertex[p] = True
+            self.known[p] = False
+
     def forget(self, p: int) -> None:
         self.known[p] = False
+        self.vertex[p] = False
 
     @property
     def nbytes(self) -> int:
-        return int(sum(a.nbytes for a in (self.x, self.basic, self.active, self.eq_active, self.known, self.stable)))
+        return int(sum(a.nbytes for a in (self.x, self.basic, self.active, self.eq_active, self.known, self.stable,
+                                          self.vertex)))
 
 
 def ranges(start, stop):

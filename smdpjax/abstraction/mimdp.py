@@ -438,6 +438,43 @@ class MIMDP(AbstractionMixin):
         q = jax.lax.cond(jnp.any(lam > 0), lambda: jax.lax.cond(jnp.sum(solve) <= budget, few, every), lambda: low)
         return q, lam
 
+    @property
+    def exact_transitions(self) -> bool:
+        """Whether ``worst_case_transitions`` returns the LPs' optimal vertices (HiGHS's simplex),
+        rather than interior points optimal to the solver's tolerance (Clarabel), whose noise
+        slows policy iteration down (``synthesize`` then defaults to value iteration)."""
+        return self.lps.backend == "highs"
+
+    def worst_case_transitions(self, v, actions, adversary: str = "min"):
+        """The adversary's optimal distributions for a stationary strategy at values ``v``: for each
+        row, an optimal point of the LP of ``min`` (or ``max``) ``<gamma, v>`` for the row's action
+        ``actions[r]`` (``lp.ClusterLPs.vertices``), the LPs solved or re-priced at ``v``.
+
+        Host-side (NumPy in, SciPy out), for loops that evaluate a strategy against a fixed
+        adversary by a linear solve (``synthesis.policy_iteration``); not a bound by itself.
+        Returns ``(matrix, solved)``: a ``scipy.sparse.csr_matrix`` ``(R, N+1)`` whose row ``r`` is
+        that distribution (the unlisted states' mass where the LP's buckets price it), and
+        ``solved (R,)`` bool, False where the LP ended without an optimum (its row then holds the
+        lower bounds only).
+        """
+        import scipy.sparse as sp
+
+        minimize = check_adversary(adversary)
+        v = np.asarray(v, np.float64)
+        actions = np.asarray(actions, np.int64)
+        rows = np.arange(actions.size)
+        ids = np.asarray(self.lp_index)[rows, actions]
+        lp, state, mass, solved = self.lps.vertices(v if minimize else -v, ids, 0 if minimize else 1)
+        lower_succ = np.asarray(self.relaxation.lower_succ)[rows, actions]  # (R, L)
+        lower_value = np.asarray(self.relaxation.lower_value)[rows, actions]
+        has = (lower_value > 0) & (lower_succ < self.num_states)
+        r = np.concatenate([lp, np.nonzero(has)[0]])
+        c = np.concatenate([state, lower_succ[has]])
+        m = np.concatenate([mass, lower_value[has]])
+        matrix = sp.csr_matrix((m, (r, c)), shape=(actions.size, self.num_states))
+        matrix.sum_duplicates()
+        return matrix, solved
+
     def from_multipliers(self, lam) -> "MIMDP":
         """This MI-MDP frozen at the multipliers ``lam (R, A, J, 2)`` (any nonnegative ones give a
         view on the conservative side; see ``freeze``)."""

@@ -8,7 +8,7 @@ import numpy as np
 
 from ..abstraction.base import AbstractionMixin
 from ..partition import NONTERMINAL
-from . import value_iteration
+from . import policy_iteration, value_iteration
 from .solution import Solution
 
 __all__ = ["synthesize", "verify", "Solution", "synthesize_product", "verify_product", "ProductAbstraction",
@@ -56,8 +56,12 @@ def _finish_arrays(labels, rows, lower, upper, lower_opt, policy_rows, allowance
     return lower, upper, widen(lower_opt, -1), policy, gap
 
 
+METHODS = ("value_iteration", "policy_iteration")
+
+
 def synthesize(abstraction, horizon: int | None = None, tol: float = 1e-6, *, objective: str = "reach_avoid",
-               max_iterations: int = 100_000, policy_sweeps: int | None = None, upper: bool = True) -> Solution:
+               max_iterations: int = 100_000, policy_sweeps: int | None = None, upper: bool = True,
+               method: str | None = None) -> Solution:
     """Robust dynamic programming: p_low with an optimal strategy, then p_up under it.
 
     Args:
@@ -83,6 +87,15 @@ def synthesize(abstraction, horizon: int | None = None, tol: float = 1e-6, *, ob
         upper: ``False`` skips the optimistic bound (about half the work of a finite horizon)
             when only the guarantee and its strategy are needed; ``Solution.upper`` is then the
             trivial bound (1 on every state that is not avoided) and ``gap`` reports its width.
+        method: how an unbounded horizon's strategy is optimized: ``"value_iteration"`` (modified
+            policy iteration from below, ``value_iteration.optimize_lower``; every class) or
+            ``"policy_iteration"`` (each strategy evaluated by linear solves against the
+            adversary's optimal distributions, ``policy_iteration.optimize``; classes with
+            ``worst_case_transitions``: the MI-MDP). ``None``: policy iteration where the class
+            offers exact vertices (``exact_transitions``: the MI-MDP with HiGHS), else value
+            iteration. Both end with the same certified evaluation of the
+            strategy; policy iteration's values are only its guess. Falls back to value
+            iteration where an LP ends without an optimum.
 
     Returns:
         ``Solution``. ``lower`` is the certified value of the returned strategy, evaluated
@@ -98,16 +111,22 @@ def synthesize(abstraction, horizon: int | None = None, tol: float = 1e-6, *, ob
     v0 = _check(abstraction, horizon, tol, objective)
     if policy_sweeps is not None and (int(policy_sweeps) != policy_sweeps or policy_sweeps < 0):
         raise ValueError(f"policy_sweeps must be None or a non-negative integer, got {policy_sweeps}")
+    if method is not None and method not in METHODS:
+        raise ValueError(f"method must be None or one of {METHODS}, got {method!r}")
+    if method == "policy_iteration" and not policy_iteration.supports(abstraction):
+        raise ValueError(f"policy iteration needs the adversary's optimal distributions (worst_case_transitions), "
+                         f"which {type(abstraction).__name__} does not offer: use method='value_iteration'")
     if horizon is not None:
         lo, up, policy = value_iteration.finite_horizon(abstraction, v0, int(horizon), with_upper=bool(upper))
         return _finish(abstraction, lo, up, policy, lo, horizon, 0, True, 0.0, int(horizon), objective)
     sweeps = None if policy_sweeps is None else int(policy_sweeps)
-    lo_opt, policy, k, converged = _optimize(abstraction, v0, tol, max_iterations, sweeps)
+    iterate = method == "policy_iteration" or (method is None and policy_iteration.preferred(abstraction))
+    guess, policy, k, converged, lo_opt = _optimize(abstraction, v0, tol, max_iterations, sweeps, iterate)
     if upper:
         lo, up, k_eval, (converged_eval, change) = _evaluate_both(abstraction, v0, policy, tol, max_iterations,
-                                                                  guess=lo_opt)
+                                                                  guess=guess)
     else:
-        lo, k_eval, converged_eval = _pessimistic(abstraction, v0, policy, tol, max_iterations, lo_opt)
+        lo, k_eval, converged_eval = _pessimistic(abstraction, v0, policy, tol, max_iterations, guess)
         up, change = value_iteration.top_values(abstraction), 0.0
     lo_opt = jnp.maximum(lo_opt, lo)  # both are lower bounds of the optimum (the strategy's value is one)
     return _finish(abstraction, lo, up, policy, lo_opt, k, k_eval, converged and converged_eval, change, None,
@@ -150,15 +169,24 @@ def verify(abstraction, policy=None, horizon: int | None = None, tol: float = 1e
     return _finish(abstraction, lo, up, rows_policy, lo, 0, k, converged, change, None, objective)
 
 
-def _optimize(abstraction, v0, tol, max_iterations, policy_sweeps=None):
-    """Optimal lower bound and strategy, warm-started from a relaxation where there is one."""
+def _optimize(abstraction, v0, tol, max_iterations, policy_sweeps=None, iterate_policies=False):
+    """The optimized strategy, warm-started from a relaxation where there is one:
+    ``(guess, policy, backups, converged, lower)``. ``guess`` (N+1,) is the optimization's last
+    value, where the strategy's evaluation starts; ``lower`` a certified lower bound of the
+    optimum: ``guess`` itself after value iteration (its iterates rise from below), the
+    relaxation's lower bound (or p^0) after policy iteration, whose values are not bounds."""
     relaxation = getattr(abstraction, "relaxation", None)
     start, policy0, k0 = v0, None, 0
     if relaxation is not None:
-        start, policy0, k0, _ = _optimize(relaxation, v0, tol, max_iterations, policy_sweeps)
+        start, policy0, k0, _, _ = _optimize(relaxation, v0, tol, max_iterations, policy_sweeps)
+    if iterate_policies:
+        found = policy_iteration.optimize(abstraction, start, v0, tol, max_iterations, policy0)
+        if found is not None:
+            guess, policy, k, _, converged = found
+            return jnp.asarray(guess), jnp.asarray(policy), k + int(k0), converged, start
     lo, policy, k, delta = value_iteration.optimize_lower(abstraction, start, tol, max_iterations, policy0,
                                                           policy_sweeps=policy_sweeps)
-    return lo, policy, int(k) + int(k0), bool(delta <= tol)
+    return lo, policy, int(k) + int(k0), bool(delta <= tol), lo
 
 
 def _pessimistic(abstraction, v0, policy_rows, tol, max_iterations, guess=None):

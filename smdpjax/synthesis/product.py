@@ -167,6 +167,25 @@ class ProductAbstraction(AbstractionMixin):
         q = self._per_state(lambda b, w: b.greedy_q_values(w), u)
         return q[self.tables.row_q, self.tables.row_r]
 
+    def greedy_backup(self, v):
+        """``greedy_q_values(v)`` and the base's multipliers per product row (``(R, A, J, 2)``, or
+        ``None`` for a base that keeps none; see ``MIMDP.greedy_backup``)."""
+        u = self.successor_values(v, True)
+        q, lam = self._per_state(lambda b, w: b.greedy_backup(w), u)
+        pick = lambda a: a[self.tables.row_q, self.tables.row_r]
+        return pick(q), (None if lam is None else pick(lam))
+
+    def from_multipliers(self, lam) -> "ProductAbstraction":
+        """The base frozen per live DFA state at the multipliers ``lam (R, A, J, 2)`` of the product
+        rows (zeros on a base row a DFA state does not have)."""
+        shape = (len(self.tables.live), self.tables.num_base_rows) + lam.shape[1:]
+        full = jnp.zeros(shape, lam.dtype).at[self.tables.row_q, self.tables.row_r].set(lam)
+        if self.batched:
+            base = jax.vmap(lambda b, m: b.from_multipliers(m))(self.base, full)
+        else:
+            base = jax.vmap(lambda m: self.base.from_multipliers(m))(full)
+        return dataclasses.replace(self, base=base, batched=True)
+
     def restrict(self, actions) -> "ProductAbstraction":
         """The single-action product of a stationary strategy over the product rows ``(R,)``: one
         restricted base per live DFA state (batched)."""

@@ -683,7 +683,7 @@ def test_frozen_sweeps_reach_the_values_of_an_lp_at_every_sweep(unicycle_12):
     for freeze in (True, False):
         mimdp = MIMDP.from_clusters(grid, clusters, lp_backend="highs", freeze_multipliers=freeze)
         assert mimdp.freezable is freeze
-        sols[freeze] = sj.synthesize(mimdp, tol=1e-9)
+        sols[freeze] = sj.synthesize(mimdp, tol=1e-9, method="value_iteration")
         assert sols[freeze].converged
     for name in ("lower", "lower_optimal", "upper"):
         np.testing.assert_allclose(np.asarray(getattr(sols[True], name)), np.asarray(getattr(sols[False], name)),
@@ -729,7 +729,7 @@ def test_sweeps_from_the_greedy_multipliers_save_lps_not_tightness(unicycle_12, 
     for reuse in (True, False):
         monkeypatch.setattr(value_iteration, "REUSE_GREEDY_MULTIPLIERS", reuse)
         mimdp = MIMDP.from_clusters(grid, clusters, lp_backend="highs")  # a new model: a new trace
-        sols[reuse] = sj.synthesize(mimdp, tol=1e-9)
+        sols[reuse] = sj.synthesize(mimdp, tol=1e-9, method="value_iteration")
         calls[reuse] = mimdp.lps.stats["calls"]
         assert sols[reuse].converged
     assert calls[True] < calls[False]
