@@ -96,7 +96,9 @@ class ClusterLPs:
             (``lp_reprice``); ``stats["repriced"]`` counts the LPs served so.
         reprice_gap: largest certified duality gap of re-priced duals that are used.
 
-    An LP that ends without an optimum (infeasible, numerical failure, iteration limit) keeps
+    A HiGHS solve warm-started from an LP's last basis that ends without an optimum is run
+    again from no basis (``stats["cold_retries"]`` counts them). An LP that still ends without an
+    optimum (infeasible, numerical failure, iteration limit) keeps
     the multipliers the solver returned, clipped at 0: the bound they certify is still sound
     (weak duality holds for any nonnegative multipliers) but may be loose. Each call that meets
     such LPs warns once, naming the first of them (cell, action, solver status) and how many
@@ -352,9 +354,17 @@ class ClusterLPs:
             if basis is not None:
                 h.setBasis(basis)
             h.run()
+            status = h.modelStatusToString(h.getModelStatus())
+            if status not in _OPTIMAL and basis is not None:
+                # a warm start can end without an optimum where a cold solve finds one (HiGHS
+                # 1.16: status "Unknown" from a last basis on the 2-D unicycle at 45x45)
+                h.passModel(*model)
+                h.run()
+                status = h.modelStatusToString(h.getModelStatus())
+                with self._lock:
+                    self.stats["cold_retries"] += 1
             self._solvers[key] = h.getBasis()
             solution = h.getSolution()
-            status = h.modelStatusToString(h.getModelStatus())
             row_dual = np.asarray(solution.row_dual)
             # the optimal vertex (``vertices``) and, when re-pricing, the basis
             record, lock = self._record(direction), self._record_locks[direction]

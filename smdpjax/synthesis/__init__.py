@@ -178,7 +178,9 @@ def _optimize(abstraction, v0, tol, max_iterations, policy_sweeps=None, iterate_
     relaxation = getattr(abstraction, "relaxation", None)
     start, policy0, k0 = v0, None, 0
     if relaxation is not None:
-        start, policy0, k0, _, _ = _optimize(relaxation, v0, tol, max_iterations, policy_sweeps)
+        # policy iteration needs a start, not a tight one (it is not a bound it reports)
+        start_tol = max(tol, policy_iteration.START_TOL) if iterate_policies else tol
+        start, policy0, k0, _, _ = _optimize(relaxation, v0, start_tol, max_iterations, policy_sweeps)
     if iterate_policies:
         found = policy_iteration.optimize(abstraction, start, v0, tol, max_iterations, policy0)
         if found is not None:

@@ -764,6 +764,45 @@ def test_unsolved_lps_are_reported_with_their_cell_and_action(backend):
     assert np.all(loose <= good + 1e-8)
 
 
+def test_a_failed_warm_start_is_solved_again_cold(monkeypatch):
+    """A HiGHS solve from an LP's last basis that ends without an optimum is run again from no
+    basis: the values are those of a solver that never failed, and no failure is reported."""
+    highspy = pytest.importorskip("highspy")
+    system = sj.System(unicycle, actions=(np.arange(4) * np.pi / 2)[:, None], noise=sj.Gaussian([0.0, 0.0], [0.3, 0.3]))
+    grid = sj.StateGrid([0, 0], [1, 1], 6, reach=[([2 / 3, 2 / 3], [1.0, 1.0])])
+    clusters = compute_grid_clusters(system, grid, sj.NoiseGrid.ball([0.0, 0.0], 0.9, 3))
+    plain = MIMDP.from_clusters(grid, clusters, lp_backend="highs", screen_actions=False, reprice_bases=False)
+    flaky = MIMDP.from_clusters(grid, clusters, lp_backend="highs", screen_actions=False, reprice_bases=False)
+
+    class WarmFails:  # a Highs whose runs from a given basis end with status "Unknown"
+        def __init__(self, inner):
+            self.inner, self.warm = inner, False
+
+        def passModel(self, *args):
+            self.warm = False
+            return self.inner.passModel(*args)
+
+        def setBasis(self, basis):
+            self.warm = True
+            return self.inner.setBasis(basis)
+
+        def getModelStatus(self):
+            return highspy.HighsModelStatus.kUnknown if self.warm else self.inner.getModelStatus()
+
+        def __getattr__(self, name):
+            return getattr(self.inner, name)
+
+    solver = flaky.lps._highs_solver
+    monkeypatch.setattr(flaky.lps, "_highs_solver", lambda: WarmFails(solver()))
+    rng = np.random.default_rng(4)
+    for v in (rng.random(grid.num_states), rng.random(grid.num_states)):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # nothing reported as failed
+            np.testing.assert_allclose(q_values(flaky, v), q_values(plain, v), rtol=0, atol=1e-9)
+    lps = plain.num_rows * plain.num_actions
+    assert flaky.lps.stats["cold_retries"] == lps and flaky.lps.stats["failed"] == 0  # the second call's
+
+
 def test_slots_of_reads_a_table_that_is_never_cleared(monkeypatch):
     """Positions of ids in sorted lists, through a position table reused block after block (3
     lists per block here): stale entries of earlier lists must not be read as positions."""
