@@ -51,10 +51,13 @@ class AbstractionMixin:
         tell cheaply which actions cannot win overrides it to skip their work (the MI-MDP)."""
         return self.q_values(v, "min")
 
-    def greedy_backup(self, v):
+    def greedy_backup(self, v, floor=None, current=None):
         """``(q (R, A), lam)``: ``greedy_q_values(v)`` and, for a ``freezable`` class, the
         multipliers that certify it, which a loop may freeze for the greedy strategy's sweeps;
-        ``lam`` is ``None`` here (a class with no multipliers, or one that does not keep them)."""
+        ``lam`` is ``None`` here (a class with no multipliers, or one that does not keep them).
+        ``floor`` and ``current`` (``(R,)``, optional) say which values a caller can do without
+        (below ``floor``, or of the row's ``current`` action); a class whose q-values cost a
+        solver call skips them (the MI-MDP), this one computes everything."""
         return self.greedy_q_values(v), None
 
     def initial_values(self, objective: str = "reach_avoid"):

@@ -390,11 +390,17 @@ class MIMDP(AbstractionMixin):
         """
         return self.greedy_backup(v)[0]
 
-    def greedy_backup(self, v):
+    def greedy_backup(self, v, floor=None, current=None):
         """``(q (R, A), lam (R, A, J, 2))``: ``greedy_q_values(v)`` and the multipliers that
         certify it (zeros on the pairs whose LPs it did not solve; ``None`` for a frozen view),
         which a loop may freeze for the greedy strategy's sweeps (``from_multipliers``): they
-        are exact at ``v`` on every pair they certify."""
+        are exact at ``v`` on every pair they certify.
+
+        ``floor (R,)`` and ``current (R,)`` (optional, for policy iteration, which knows its
+        strategy's values): an action whose screen value is below ``floor`` is not solved either
+        (it cannot exceed ``floor``), nor is ``current``, the row's present action. Every entry
+        stays a certified lower bound; the row maximum is then ``q_values``'s only where it
+        exceeds ``floor``."""
         if self.frozen is not None:
             return self.q_values(v, "min"), None
         if self.screen is None:  # nothing to skip
@@ -407,9 +413,13 @@ class MIMDP(AbstractionMixin):
         low = imdp.q_values(v, "min")
         high = self.screen.q_values(v, "min")
         margin = self._screen_margin()  # a wider margin only keeps more contenders
-        contender = high >= low.max(axis=1, keepdims=True) - margin
+        best = low.max(axis=1, keepdims=True)
+        best = best if floor is None else jnp.maximum(best, jnp.asarray(floor, best.dtype)[:, None])
+        contender = high >= best - margin
         pinned = high <= low + margin  # the IMDP value is already the MI-MDP's, within the margin
         solve = contender & ~pinned
+        if current is not None:
+            solve &= jnp.arange(low.shape[1]) != jnp.asarray(current)[:, None]
         lam = self.multipliers(v, jnp.where(solve, self.lp_index, -1))
         arrays = (imdp.successors, imdp.lower, imdp.upper, self.cluster_members, self.cluster_lower,
                   self.cluster_upper, lam, low)

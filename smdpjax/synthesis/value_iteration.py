@@ -53,7 +53,7 @@ def _replicated(v, rows):
 FROZEN_SWEEPS = 32
 SWEEPS_PER_FREEZE = 8
 # The first round of sweeps starts from the greedy backup's own multipliers for the strategy's
-# actions rather than refreezing at once: on Table 1 row 3 (benchmarks/mimdp_greedy_reuse.py, medians
+# actions rather than refreezing at once: on Table 1 row 3 (benchmarks/mimdp_switch.py, medians
 # of 3 alternating) 78 against 97 LP calls, 32 999 against 38 507 HiGHS solves, T_syn 37.9 against 40.5 s.
 REUSE_GREEDY_MULTIPLIERS = True
 

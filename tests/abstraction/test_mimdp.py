@@ -581,6 +581,35 @@ def test_greedy_certifies_only_the_pairs_whose_lps_it_solved(unicycle_12, monkey
     assert np.any(full > low + 1e-6)  # the LPs lift some pairs above their IMDP value
 
 
+def test_greedy_backup_skips_actions_below_a_floor_and_the_current_ones(unicycle_12):
+    """With ``floor`` and ``current`` (policy iteration's hints) a greedy backup solves fewer LPs,
+    every entry stays a lower bound of ``q_values``, and wherever some action's value exceeds the
+    floor by more than the screen's margin the row maximum and its argmax are ``q_values``'s."""
+    grid, _, mimdp = unicycle_12
+    v = jnp.asarray(np.random.default_rng(11).uniform(0, 1, mimdp.num_states)).at[-1].set(0.0)
+    full = q_values(mimdp, v, "min")
+    current = np.argmax(full, axis=1)
+    floor = np.sort(full, axis=1)[:, -2] + 1e-12  # just above each row's second best: only the best may beat it
+    plain_before = mimdp.lps.stats["skipped"]
+    jax.jit(lambda m, x: m.greedy_backup(x)[0])(mimdp, v)
+    plain_skipped = mimdp.lps.stats["skipped"] - plain_before
+    greedy = jax.jit(lambda m, x, f, c: m.greedy_backup(x, f, c)[0])
+    before = mimdp.lps.stats["skipped"]
+    hinted = np.asarray(greedy(mimdp, v, floor, np.full(mimdp.num_rows, -1)))
+    assert mimdp.lps.stats["skipped"] - before > plain_skipped
+    assert np.all(hinted <= full + 1e-9)
+    above = full.max(axis=1) > floor + 1e-7
+    assert above.any()
+    np.testing.assert_allclose(hinted.max(axis=1)[above], full.max(axis=1)[above], rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(hinted.argmax(axis=1)[above], current[above])
+    # the current action is never solved: it keeps the IMDP value where its LP would lift it
+    low = np.asarray(mimdp.relaxation.q_values(v, "min"))
+    skipped = np.asarray(greedy(mimdp, v, np.full(mimdp.num_rows, -1.0), current))
+    rows = np.arange(mimdp.num_rows)
+    np.testing.assert_allclose(skipped[rows, current], low[rows, current], rtol=0, atol=1e-12)
+    assert np.any(full[rows, current] > low[rows, current] + 1e-6)
+
+
 def test_screening_does_not_change_synthesis(unicycle_12):
     grid, clusters, screened = unicycle_12
     plain = MIMDP.from_clusters(grid, clusters, screen_actions=False)

@@ -1,0 +1,96 @@
+"""MI-MDP synthesis with one of its switches on (the default) and off, side by side.
+
+    python -m benchmarks.mimdp_switch --switch greedy_reuse --rows 3 --repeats 3
+
+The switches (module constants read when the synthesis is traced):
+
+* ``greedy_reuse`` (``value_iteration.REUSE_GREEDY_MULTIPLIERS``): value iteration's first round of
+  strategy sweeps after a greedy backup freezes the multipliers that backup solved for the
+  strategy's actions, instead of solving the strategy's LPs again (``--method value_iteration``);
+* ``greedy_screen`` (``policy_iteration.SCREEN_BY_STRATEGY_VALUE``): policy iteration's greedy
+  backups solve only the LPs of actions whose screen value exceeds the strategy's value, not
+  those of the current actions, instead of every action that could be a row's best.
+
+For each Table 1 MI-MDP row the clusters are computed once; then, ``--repeats`` rounds, each mode
+builds a fresh MI-MDP (no warm starts carried over) and runs ``synthesize`` with ``--method`` (T_syn as
+Table 1 times it), the two modes alternating in one process so that both see the same load. Reports the
+medians of T_syn and of the LP wall time, the LP calls and HiGHS solves of the last run, and the
+largest difference of the bounds between the modes.
+"""
+
+from __future__ import annotations
+
+import time
+
+import jax
+import numpy as np
+
+from .common import argument_parser, median, row_clusters, write_result
+
+MODES = {"on": True, "off": False}
+SWITCHES = {"greedy_reuse": ("value_iteration", "REUSE_GREEDY_MULTIPLIERS"),
+            "greedy_screen": ("policy_iteration", "SCREEN_BY_STRATEGY_VALUE")}
+
+
+def measure(row: int, repeats: int, switch: str, method: str | None) -> dict:
+    import importlib
+
+    from smdpjax.abstraction import build
+
+    study, clusters = row_clusters(row, "mimdp")
+    times = {name: [] for name in MODES}
+    lp_times = {name: [] for name in MODES}
+    stats, solutions = {}, {}
+    module_name, flag = SWITCHES[switch]
+    module = importlib.import_module(f"smdpjax.synthesis.{module_name}")
+    default = getattr(module, flag)
+    from smdpjax import synthesize
+
+    try:
+        for _ in range(max(1, repeats)):
+            for name, on in MODES.items():
+                setattr(module, flag, on)  # read when the loop is traced
+                mimdp = build("mimdp", study.state_grid, clusters, lp_backend="highs")  # a new model: a new trace
+                start = time.perf_counter()
+                solutions[name] = jax.block_until_ready(synthesize(mimdp, horizon=study.horizon, objective=study.objective,
+                                                                   method=method))
+                times[name].append(time.perf_counter() - start)
+                lp_times[name].append(float(mimdp.lps.stats["solve_seconds"]))
+                stats[name] = dict(calls=int(mimdp.lps.stats["calls"]), solves=int(mimdp.lps.stats["Optimal"]),
+                                   repriced=int(mimdp.lps.stats["repriced"]))
+    finally:
+        setattr(module, flag, default)
+    ours, theirs = solutions["on"], solutions["off"]
+    diff = max(float(np.max(np.abs(np.asarray(getattr(ours, f)) - np.asarray(getattr(theirs, f)))))
+               for f in ("lower", "upper", "lower_optimal"))
+    return dict(row=row, switch=switch, states=study.state_grid.num_states, actions=study.num_actions, runs_s=times,
+                lp_runs_s=lp_times, t_syn_s={n: median(t) for n, t in times.items()},
+                lp_s={n: median(t) for n, t in lp_times.items()}, stats=stats,
+                backups={n: int(s.iterations) + int(s.evaluation_iterations) for n, s in solutions.items()},
+                max_bound_difference=diff)
+
+
+def main(argv=None):
+    parser = argument_parser(__doc__, "mimdp_switch", repeats=3)
+    parser.add_argument("--rows", default="3", help="Table 1 MI-MDP rows")
+    parser.add_argument("--switch", choices=sorted(SWITCHES), required=True)
+    parser.add_argument("--method", choices=("policy_iteration", "value_iteration"), default=None,
+                        help="synthesis method (default: greedy_reuse value iteration, greedy_screen policy iteration)")
+    args = parser.parse_args(argv)
+    results = []
+    print(f"{'row':>4} {'mode':9} {'T_syn s':>8} {'LP s':>7} {'LP calls':>9} {'HiGHS':>7} {'repriced':>9} "
+          f"{'backups':>8} {'max diff':>9}")
+    for row in (int(r) for r in args.rows.split(",")):
+        method = args.method or ("value_iteration" if args.switch == "greedy_reuse" else "policy_iteration")
+        r = measure(row, args.repeats, args.switch, method)
+        results.append(r)
+        for name in MODES:
+            s = r["stats"][name]
+            print(f"{row:>4} {name:9} {r['t_syn_s'][name]:>8.2f} {r['lp_s'][name]:>7.2f} {s['calls']:>9} "
+                  f"{s['solves']:>7} {s['repriced']:>9} {r['backups'][name]:>8} {r['max_bound_difference']:>9.1e}",
+                  flush=True)
+    print("wrote", write_result(f"mimdp_switch_{args.switch}", args, rows=results))
+
+
+if __name__ == "__main__":
+    main()
