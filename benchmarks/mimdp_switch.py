@@ -75,7 +75,7 @@ def main(argv=None):
     parser.add_argument("--rows", default="3", help="Table 1 MI-MDP rows")
     parser.add_argument("--switch", choices=sorted(SWITCHES), required=True)
     parser.add_argument("--method", choices=("policy_iteration", "value_iteration"), default=None,
-                        help="synthesis method (default: greedy_reuse value iteration, greedy_screen policy iteration)")
+                        help="synthesis method (default: value iteration for greedy_reuse, else policy iteration)")
     args = parser.parse_args(argv)
     results = []
     print(f"{'row':>4} {'mode':9} {'T_syn s':>8} {'LP s':>7} {'LP calls':>9} {'HiGHS':>7} {'repriced':>9} "
