@@ -56,8 +56,8 @@ class AbstractionMixin:
         multipliers that certify it, which a loop may freeze for the greedy strategy's sweeps;
         ``lam`` is ``None`` here (a class with no multipliers, or one that does not keep them).
         ``floor`` and ``current`` (``(R,)``, optional) say which values a caller can do without
-        (below ``floor``, or of the row's ``current`` action); a class whose q-values cost a
-        solver call skips them (the MI-MDP), this one computes everything."""
+        (those below ``floor``, except the row's ``current`` action's); a class whose q-values
+        cost a solver call skips them (the MI-MDP), this one computes everything."""
         return self.greedy_q_values(v), None
 
     def initial_values(self, objective: str = "reach_avoid"):

@@ -398,9 +398,10 @@ class MIMDP(AbstractionMixin):
 
         ``floor (R,)`` and ``current (R,)`` (optional, for policy iteration, which knows its
         strategy's values): an action whose screen value is below ``floor`` is not solved either
-        (it cannot exceed ``floor``), nor is ``current``, the row's present action. Every entry
-        stays a certified lower bound; the row maximum is then ``q_values``'s only where it
-        exceeds ``floor``."""
+        (it cannot exceed ``floor``), except ``current``, the row's present action, which is
+        solved wherever the screen does not pin it (the others are compared with its certified
+        value). Every entry stays a certified lower bound; the row maximum is then
+        ``q_values``'s where it exceeds ``floor`` or is the current action's."""
         if self.frozen is not None:
             return self.q_values(v, "min"), None
         if self.screen is None:  # nothing to skip
@@ -417,9 +418,9 @@ class MIMDP(AbstractionMixin):
         best = best if floor is None else jnp.maximum(best, jnp.asarray(floor, best.dtype)[:, None])
         contender = high >= best - margin
         pinned = high <= low + margin  # the IMDP value is already the MI-MDP's, within the margin
-        solve = contender & ~pinned
         if current is not None:
-            solve &= jnp.arange(low.shape[1]) != jnp.asarray(current)[:, None]
+            contender |= jnp.arange(low.shape[1]) == jnp.asarray(current)[:, None]
+        solve = contender & ~pinned
         lam = self.multipliers(v, jnp.where(solve, self.lp_index, -1))
         arrays = (imdp.successors, imdp.lower, imdp.upper, self.cluster_members, self.cluster_lower,
                   self.cluster_upper, lam, low)
@@ -461,7 +462,11 @@ class MIMDP(AbstractionMixin):
         ``actions[r]`` (``lp.ClusterLPs.vertices``), the LPs solved or re-priced at ``v``.
 
         Host-side (NumPy in, SciPy out), for loops that evaluate a strategy against a fixed
-        adversary by a linear solve (``synthesis.policy_iteration``); not a bound by itself.
+        adversary by a linear solve (``synthesis.policy_iteration``); not a bound by itself. The
+        point is the solver's surrogate LP's, which prices the unlisted states beyond its buckets
+        at one state (``lp.ClusterLPs``): where that remainder carries mass, the distribution
+        puts it on that state, above its own upper bound, and its value lies below the certified
+        q-value (``q_values``), which bounds every unlisted state exactly.
         Returns ``(matrix, solved)``: a ``scipy.sparse.csr_matrix`` ``(R, N+1)`` whose row ``r`` is
         that distribution (the unlisted states' mass where the LP's buckets price it), and
         ``solved (R,)`` bool, False where the LP ended without an optimum (its row then holds the

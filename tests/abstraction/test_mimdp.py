@@ -581,15 +581,18 @@ def test_greedy_certifies_only_the_pairs_whose_lps_it_solved(unicycle_12, monkey
     assert np.any(full > low + 1e-6)  # the LPs lift some pairs above their IMDP value
 
 
-def test_greedy_backup_skips_actions_below_a_floor_and_the_current_ones(unicycle_12):
+def test_greedy_backup_skips_actions_below_a_floor_but_not_the_current_ones(unicycle_12):
     """With ``floor`` and ``current`` (policy iteration's hints) a greedy backup solves fewer LPs,
-    every entry stays a lower bound of ``q_values``, and wherever some action's value exceeds the
-    floor by more than the screen's margin the row maximum and its argmax are ``q_values``'s."""
+    every entry stays a lower bound of ``q_values``, wherever some action's value exceeds the
+    floor the row maximum and its argmax are ``q_values``'s, and the current action is solved
+    even below the floor."""
     grid, _, mimdp = unicycle_12
     v = jnp.asarray(np.random.default_rng(11).uniform(0, 1, mimdp.num_states)).at[-1].set(0.0)
     full = q_values(mimdp, v, "min")
     current = np.argmax(full, axis=1)
-    floor = np.sort(full, axis=1)[:, -2] + 1e-12  # just above each row's second best: only the best may beat it
+    # odd rows: a floor above every action's value (nothing can beat it); even rows: none
+    high = np.arange(mimdp.num_rows) % 2 == 1
+    floor = np.where(high, full.max(axis=1) + 0.05, -1.0)
     plain_before = mimdp.lps.stats["skipped"]
     jax.jit(lambda m, x: m.greedy_backup(x)[0])(mimdp, v)
     plain_skipped = mimdp.lps.stats["skipped"] - plain_before
@@ -599,15 +602,24 @@ def test_greedy_backup_skips_actions_below_a_floor_and_the_current_ones(unicycle
     assert mimdp.lps.stats["skipped"] - before > plain_skipped
     assert np.all(hinted <= full + 1e-9)
     above = full.max(axis=1) > floor + 1e-7
-    assert above.any()
+    np.testing.assert_array_equal(above, ~high)
     np.testing.assert_allclose(hinted.max(axis=1)[above], full.max(axis=1)[above], rtol=0, atol=1e-9)
-    np.testing.assert_array_equal(hinted.argmax(axis=1)[above], current[above])
-    # the current action is never solved: it keeps the IMDP value where its LP would lift it
+    top2 = np.sort(full, axis=1)[:, -2:]
+    clear = above & (top2[:, 1] - top2[:, 0] > 1e-7)
+    np.testing.assert_array_equal(hinted.argmax(axis=1)[clear], current[clear])
+    # above every value: the current action is still solved (its certified value is q_values's),
+    # the others below the floor by the screen keep their IMDP value
     low = np.asarray(mimdp.relaxation.q_values(v, "min"))
-    skipped = np.asarray(greedy(mimdp, v, np.full(mimdp.num_rows, -1.0), current))
+    high = np.asarray(mimdp.screen.q_values(v, "min"))
+    floor = full.max(axis=1) + 0.05
+    forced = np.asarray(greedy(mimdp, v, floor, current))
     rows = np.arange(mimdp.num_rows)
-    np.testing.assert_allclose(skipped[rows, current], low[rows, current], rtol=0, atol=1e-12)
-    assert np.any(full[rows, current] > low[rows, current] + 1e-6)
+    np.testing.assert_allclose(forced[rows, current], full[rows, current], rtol=0, atol=1e-9)
+    assert np.any(full[rows, current] > low[rows, current] + 1e-6)  # the LPs lift them
+    below = high < floor[:, None] - mimdp._screen_margin()
+    below[rows, current] = False
+    assert below.sum() > below.size // 2
+    np.testing.assert_allclose(forced[below], low[below], rtol=0, atol=1e-12)
 
 
 def test_screening_does_not_change_synthesis(unicycle_12):

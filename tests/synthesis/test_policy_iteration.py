@@ -56,6 +56,29 @@ def test_reach_values_of_a_chain_are_its_exact_absorption_probabilities():
     assert values[2] == 0.0 and values[3] == 0.0
 
 
+def test_reach_values_from_a_guess_are_the_direct_solution(monkeypatch):
+    """With a guess the chain is solved iteratively: the values of the direct solve to 1e-12, on
+    a random chain with slowly leaking states; when the iteration cannot reach the residual
+    tolerance (one step allowed), the direct solve's values exactly."""
+    rng = np.random.default_rng(3)
+    n_rows, n = 300, 303  # states 300 (reach), 301 (avoid), 302 (sink)
+    dense = rng.uniform(0, 1, (n_rows, n)) * (rng.uniform(0, 1, (n_rows, n)) < 0.05)
+    dense[:, 300:] *= 0.05  # a small leak to the absorbing states per step
+    dense[np.arange(n_rows), rng.integers(0, n_rows, n_rows)] += 0.5
+    dense /= dense.sum(axis=1, keepdims=True)
+    rows = np.arange(n_rows)
+    terminal = np.zeros(n)
+    terminal[300] = 1.0
+    matrix = sp.csr_matrix(dense)
+    direct = policy_iteration.reach_values(matrix, rows, terminal)
+    assert 0.05 < direct[:300].min() and direct[:300].max() < 0.95
+    guess = np.clip(direct + rng.normal(0, 1e-3, n), 0, 1)
+    np.testing.assert_allclose(policy_iteration.reach_values(matrix, rows, terminal, guess=guess), direct,
+                               rtol=0, atol=1e-12)
+    monkeypatch.setattr(policy_iteration, "KRYLOV_STEPS", 1)
+    np.testing.assert_array_equal(policy_iteration.reach_values(matrix, rows, terminal, guess=guess), direct)
+
+
 def test_reach_values_with_nothing_reachable_are_zero():
     dense = np.array([[0.5, 0.0, 0.5], [0.0, 1.0, 0.0]])
     values = policy_iteration.reach_values(sp.csr_matrix(dense), np.array([0, 1]), np.array([0.0, 0.0, 0.0]))
