@@ -113,7 +113,7 @@ def reach_values(transitions, rows, terminal, guess=None):
         live = rows[keep]
         pk = p[keep]
         fixed = pk @ np.where(is_row, 0.0, terminal)
-        system = (sp.identity(live.size, format="csr") - pk[:, live]).tocsr()
+        system = sp.identity(live.size, format="csr") - pk[:, live]
         values[live] = np.clip(_solve(system, fixed, None if guess is None else np.asarray(guess, np.float64)[live]),
                                0.0, 1.0)
     return values

@@ -167,9 +167,10 @@ class ProductAbstraction(AbstractionMixin):
         q = self._per_state(lambda b, w: b.greedy_q_values(w), u)
         return q[self.tables.row_q, self.tables.row_r]
 
-    def greedy_backup(self, v):
+    def greedy_backup(self, v, floor=None, current=None):
         """``greedy_q_values(v)`` and the base's multipliers per product row (``(R, A, J, 2)``, or
-        ``None`` for a base that keeps none; see ``MIMDP.greedy_backup``)."""
+        ``None`` for a base that keeps none; see ``MIMDP.greedy_backup``). ``floor`` and
+        ``current`` are not used: every action is computed (``AbstractionMixin.greedy_backup``)."""
         u = self.successor_values(v, True)
         q, lam = self._per_state(lambda b, w: b.greedy_backup(w), u)
         pick = lambda a: a[self.tables.row_q, self.tables.row_r]
