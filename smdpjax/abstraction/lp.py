@@ -63,6 +63,12 @@ _HIGHS_ROWWISE, _HIGHS_MINIMIZE = 2, 1
 BACKENDS = ("clarabel", "highs")
 # Re-priced duals are used where their certified duality gap is at most this (``lp_reprice``).
 REPRICE_GAP = 1e-10
+# A large basis (a sparse re-pricing system) is re-priced at the next call after any optimal
+# solve, also one that pivoted: the basis is optimal at the costs just solved for, and the next
+# call often asks at the same ones (policy iteration's first adversary step after a greedy
+# backup). Off: only after a solve that took no simplex iteration (22% of row 3's HiGHS solves
+# then took none, re-solving a basis that re-pricing would have served).
+REPRICE_AFTER_PIVOTS = True
 # LPs re-priced per task: about this many chunks per thread, each within these bounds (the sparse
 # systems of ~50 LPs at a time cost 1.3x per LP what ~200 do: 8 chunks per thread before).
 _REPRICE_CHUNKS_PER_THREAD = 2
@@ -369,9 +375,9 @@ class ClusterLPs:
             # the optimal vertex (``vertices``) and, when re-pricing, the basis
             record, lock = self._record(direction), self._record_locks[direction]
             if status in _OPTIMAL:
-                # a solve from the last basis that took no iteration: re-price it next time
-                # (after a first solve, from no basis, too)
-                stable = basis is None or h.getInfo().simplex_iteration_count == 0
+                # re-price it next time (``REPRICE_AFTER_PIVOTS``; otherwise only a basis from
+                # which the solve took no iteration, or a first solve's)
+                stable = REPRICE_AFTER_PIVOTS or basis is None or h.getInfo().simplex_iteration_count == 0
                 record.record(self._lps, p, solution, row_dual, lambda: _basic_variables(h), lock,
                               stable=stable, basis=self.reprice)
             else:

@@ -11,9 +11,10 @@ to 32 unknowns, one sparse block-diagonal SuperLU factorization for larger ones)
 * the unknowns are the equality's multiplier ``nu`` and the duals ``y_i`` of the active
   (nonbasic) cluster rows. A basis has as many of each; an LP with more than ``max_size``, or
   whose system is singular, is left to the solver. A large basis (sparse system) that the
-  certificate refused is not re-priced again until the solver's next solve of its LP took no
-  simplex iteration (``BasisRecord.stable``): most of the 2-D unicycle's refused ones keep
-  moving, and their systems cost ~0.1 ms each.
+  certificate refused is not re-priced again until the solver has solved its LP again
+  (``BasisRecord.stable``; with ``lp.REPRICE_AFTER_PIVOTS`` off, until a solve that took no
+  simplex iteration): most of the 2-D unicycle's refused ones keep moving, and their systems
+  cost ~0.1 ms each.
 
 The duals are accepted only with a certificate: the surrogate LP's dual function at them,
 
@@ -59,9 +60,8 @@ class BasisRecord:
         known: ``(P,)`` bool the LP has a record (its basis, for re-pricing).
         vertex: ``(P,)`` bool ``x`` holds the LP's last optimal point.
         stable: ``(P,)`` bool worth re-pricing: a basis small enough for the dense systems,
-            or one that was still optimal last time (the solver took no iteration from it, or
-            its re-pricing was accepted). A larger basis that the certificate refused waits for
-            the solver's next solve.
+            or one the solver returned since its last refusal (see ``record``'s ``stable``).
+            A larger basis that the certificate refused waits for the solver's next solve.
     """
 
     def __init__(self, num_vars: int, num_rows: int, num_lps: int):
@@ -83,7 +83,9 @@ class BasisRecord:
         solve: as many basic variables as nonbasic rows is not met), from
         ``basic_variables()``, the solver's basic variables (``Highs.getBasicVariables``: column
         ``j`` as ``j``, row ``i`` as ``-1 - i``). ``lock`` is held while the record is written.
-        ``stable``: the solve took no simplex iteration from the LP's last basis."""
+        ``stable``: re-price this basis at the next call (``lp.REPRICE_AFTER_PIVOTS``: after
+        every optimal solve; otherwise after one that took no simplex iteration from the LP's
+        last basis)."""
         v0, v1 = table.var_start[p], table.var_start[p + 1]
         r0, r1 = table.row_start[p], table.row_start[p + 1]
         x = np.asarray(solution.col_value, np.float64)

@@ -125,8 +125,8 @@ def test_the_sparse_systems_reprice_as_the_dense_ones(seed, lps_and_costs, monke
 
 def test_a_refused_basis_waits_for_a_solve_that_keeps_it(lps_and_costs, monkeypatch):
     """An LP whose re-priced sparse system was refused is not re-priced again until HiGHS has
-    solved it without a simplex iteration (its basis then stable again); the dense systems
-    (here only those of at most 2 unknowns) are always tried."""
+    solved it again (its basis then stable again); the dense systems (here only those of at
+    most 2 unknowns) are always tried."""
     from smdpjax.abstraction import lp_reprice
 
     monkeypatch.setattr(lp_reprice, "SIZES", (2,))
@@ -284,3 +284,34 @@ def test_bases_too_large_to_reprice_are_not_recorded(lps_and_costs, monkeypatch)
     limited, _ = recorded()
     np.testing.assert_array_equal(limited, known & (unknowns <= 2))
     assert limited.any() and (known & ~limited).any()
+
+
+
+@pytest.mark.parametrize("after_pivots", [False, True])
+def test_a_basis_solved_with_pivots_is_repriced_at_the_next_call(lps_and_costs, monkeypatch, after_pivots):
+    """With ``REPRICE_AFTER_PIVOTS`` a large basis that HiGHS reached by pivoting is re-priced at
+    the next call, and at the same costs it is accepted with duals that certify the optimum;
+    without it, HiGHS solves it again."""
+    from smdpjax.abstraction import lp, lp_reprice
+
+    monkeypatch.setattr(lp_reprice, "SIZES", (2,))
+    monkeypatch.setattr(lp, "REPRICE_AFTER_PIVOTS", after_pivots)
+    lps, w, _ = lps_and_costs(5)
+    ids = np.arange(lps.num_lps)
+    lps.multipliers(w, ids)
+    lps.multipliers(1.0 - w, ids)  # large bases refused, HiGHS pivots from them
+    record = lps._record(0)
+    pivoted = record.known & ~record.stable
+    assert pivoted.any() != after_pivots
+    solves, served = lps.stats["Optimal"], lps.stats["repriced"]
+    lam = lps.multipliers(1.0 - w, ids).reshape(ids.size, -1, 2)
+    if not after_pivots:
+        assert lps.stats["Optimal"] - solves >= pivoted.sum()
+        return
+    assert lps.stats["Optimal"] == solves and lps.stats["repriced"] - served == record.known.sum()
+    costs = lps.cost_table(1.0 - w, ids)
+    table = lps._lps
+    for p in np.flatnonzero(record.known):
+        cost = costs[p, table[p]["cost_src"]]
+        optimum = cost @ record.x[table.var_start[p]:table.var_start[p + 1]]  # the vertex just solved for
+        assert surrogate_dual(lps, p, cost, lam[p]) >= optimum - 1e-9
