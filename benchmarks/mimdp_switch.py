@@ -2,7 +2,7 @@
 
     python -m benchmarks.mimdp_switch --switch greedy_reuse --rows 3 --repeats 3
 
-The switches (module constants read when the synthesis is traced):
+The switches (module constants; the first two are read when the synthesis is traced):
 
 * ``greedy_reuse`` (``value_iteration.REUSE_GREEDY_MULTIPLIERS``): value iteration's first round of
   strategy sweeps after a greedy backup freezes the multipliers that backup solved for the

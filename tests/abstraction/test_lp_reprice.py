@@ -286,7 +286,6 @@ def test_bases_too_large_to_reprice_are_not_recorded(lps_and_costs, monkeypatch)
     assert limited.any() and (known & ~limited).any()
 
 
-
 @pytest.mark.parametrize("after_pivots", [False, True])
 def test_a_basis_solved_with_pivots_is_repriced_at_the_next_call(lps_and_costs, monkeypatch, after_pivots):
     """With ``REPRICE_AFTER_PIVOTS`` a large basis that HiGHS reached by pivoting is re-priced at
