@@ -12,13 +12,16 @@ The switches (module constants; the first two are read when the synthesis is tra
   those of the current actions, instead of every action that could be a row's best;
 * ``reprice_after_pivots`` (``lp.REPRICE_AFTER_PIVOTS``, read at every LP call): a large basis
   that HiGHS reached by pivoting is re-priced at the next call, instead of only one from which
-  HiGHS took no simplex iteration.
+  HiGHS took no simplex iteration;
+* ``presolve`` (``lp.PRESOLVE``, read when a solver thread sets up its HiGHS instance): HiGHS
+  presolves the LPs it solves from no basis (its own default; "on" here is the mode that is not
+  the library's default).
 
 For each Table 1 MI-MDP row the clusters are computed once; then, ``--repeats`` rounds, each mode
 builds a fresh MI-MDP (no warm starts carried over) and runs ``synthesize`` with ``--method``, the two
 modes alternating in one process so that both see the same load. A switch read when the loop is
 traced needs a new model per run, so its T_syn includes the compilation; a host-side switch
-(``reprice_after_pivots``) uses one model, compiled by a first run not counted, and drops its LP
+(``reprice_after_pivots``, ``presolve``) uses one model, compiled by a first run not counted, and drops its LP
 solvers and warm starts before each run (``ClusterLPs.reset``): T_syn as Table 1's warm runs time it. Reports the
 medians of T_syn and of the LP wall time, the LP calls and HiGHS solves of the last run, and the
 largest difference of the bounds between the modes.
@@ -37,7 +40,8 @@ MODES = {"on": True, "off": False}
 # switch: (module, flag, read on the host at every call)
 SWITCHES = {"greedy_reuse": ("smdpjax.synthesis.value_iteration", "REUSE_GREEDY_MULTIPLIERS", False),
             "greedy_screen": ("smdpjax.synthesis.policy_iteration", "SCREEN_BY_STRATEGY_VALUE", False),
-            "reprice_after_pivots": ("smdpjax.abstraction.lp", "REPRICE_AFTER_PIVOTS", True)}
+            "reprice_after_pivots": ("smdpjax.abstraction.lp", "REPRICE_AFTER_PIVOTS", True),
+            "presolve": ("smdpjax.abstraction.lp", "PRESOLVE", True)}
 
 
 def measure(row: int, repeats: int, switch: str, method: str | None) -> dict:

@@ -314,3 +314,42 @@ def test_a_basis_solved_with_pivots_is_repriced_at_the_next_call(lps_and_costs, 
         cost = costs[p, table[p]["cost_src"]]
         optimum = cost @ record.x[table.var_start[p]:table.var_start[p + 1]]  # the vertex just solved for
         assert surrogate_dual(lps, p, cost, lam[p]) >= optimum - 1e-9
+
+
+
+@pytest.mark.parametrize("presolve, setting, presolved", [(False, None, False), (True, None, True), (False, "on", True)])
+def test_highs_presolves_only_when_asked_and_reaches_the_same_optimum(lps_and_costs, monkeypatch, presolve, setting,
+                                                                     presolved):
+    """``lp.PRESOLVE`` (off by default) decides whether HiGHS presolves the LPs it solves from no
+    basis, a ``presolve`` setting overrides it; either way the multipliers certify each LP's optimum."""
+    import highspy
+
+    from smdpjax.abstraction import lp
+
+    assert lp.PRESOLVE is False
+    monkeypatch.setattr(lp, "PRESOLVE", presolve)
+    lps, w, _ = lps_and_costs(4)
+    if setting is not None:
+        lps.settings["presolve"] = setting  # read when the solver thread sets up its instance
+    statuses = []
+    solve = ClusterLPs._solve_highs
+
+    def solve_and_note(self, *args):
+        status = solve(self, *args)
+        statuses.append(self._highs_solver().getModelPresolveStatus())
+        return status
+
+    monkeypatch.setattr(ClusterLPs, "_solve_highs", solve_and_note)
+    ids = np.arange(lps.num_lps)
+    lam = lps.multipliers(w, ids).reshape(ids.size, -1, 2)
+    presolved_solves = sum(status != highspy.HighsPresolveStatus.kNotPresolved for status in statuses)
+    # (with presolve, HiGHS still skips it on some LPs, e.g. ones its bounds show infeasible)
+    assert len(statuses) == ids.size and (presolved_solves > ids.size // 2 if presolved else presolved_solves == 0)
+    record = lps._record(0)
+    costs = lps.cost_table(w, ids)
+    table = lps._lps
+    assert record.vertex.sum() >= ids.size // 2
+    for p in np.flatnonzero(record.vertex):
+        cost = costs[p, table[p]["cost_src"]]
+        optimum = cost @ record.x[table.var_start[p]:table.var_start[p + 1]]
+        assert surrogate_dual(lps, p, cost, lam[p]) >= optimum - 1e-9
