@@ -25,8 +25,9 @@ import numpy as np
 from .common import argument_parser, median, row_clusters, write_result
 
 
-def capture(row: int) -> list:
-    """``[(lp, direction, passModel arguments)]`` of every HiGHS solve of one synthesis of ``row``."""
+def capture(row: int) -> tuple[list, dict]:
+    """``([(lp, direction, passModel arguments)], settings)``: every HiGHS solve of one synthesis of
+    ``row``, in order, and the HiGHS options the library set (``ClusterLPs.settings``)."""
     import jax
 
     from smdpjax import synthesize
@@ -79,6 +80,8 @@ def replay(solves, settings: dict, options: dict):
 
 
 def measure(row: int, option_sets: list, repeats: int) -> list:
+    """One result per option set: median seconds over ``repeats`` alternating rounds, iterations and
+    the largest optimal-value difference from the first set's (the last round's)."""
     solves, settings = capture(row)
     times = [[] for _ in option_sets]
     results = [None] * len(option_sets)
