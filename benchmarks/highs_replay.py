@@ -55,16 +55,9 @@ def capture(row: int) -> tuple[list, dict]:
 
 def replay(solves, settings: dict, options: dict):
     """``(seconds, iterations, optimal values)`` of the solves in order, each LP from its last basis."""
-    import highspy
+    from smdpjax.abstraction.lp import new_highs
 
-    from smdpjax.abstraction import lp
-
-    h = highspy.Highs()
-    h.setOptionValue("output_flag", False)
-    h.setOptionValue("threads", 1)
-    h.setOptionValue("presolve", "on" if lp.PRESOLVE else "off")
-    for name, value in {**settings, **options}.items():
-        h.setOptionValue(name, value)
+    h = new_highs({**settings, **options})  # as ClusterLPs sets up its solvers
     bases, values, iterations = {}, np.empty(len(solves)), 0
     start = time.perf_counter()
     for i, (p, direction, model) in enumerate(solves):

@@ -83,6 +83,17 @@ _REPRICE_CHUNK = (32, 4096)
 _OPTIMAL = frozenset({"Solved", "AlmostSolved", "Optimal"})
 
 
+def new_highs(settings: dict):
+    """A silent single-threaded ``Highs`` instance with presolve as ``PRESOLVE`` says, then ``settings``."""
+    h = _import("highs").Highs()
+    h.setOptionValue("output_flag", False)
+    h.setOptionValue("threads", 1)
+    h.setOptionValue("presolve", "on" if PRESOLVE else "off")
+    for name, value in settings.items():
+        h.setOptionValue(name, value)
+    return h
+
+
 class ClusterLPs:
     """LP data of every (row, action) of an MI-MDP and the solvers that use it.
 
@@ -346,13 +357,7 @@ class ClusterLPs:
         """The calling thread's ``Highs`` instance (one model at a time; bases are kept per LP)."""
         h = getattr(self._local, "highs", None)
         if h is None:
-            h = _import("highs").Highs()
-            h.setOptionValue("output_flag", False)
-            h.setOptionValue("threads", 1)
-            h.setOptionValue("presolve", "on" if PRESOLVE else "off")
-            for name, value in self.settings.items():
-                h.setOptionValue(name, value)
-            self._local.highs = h
+            h = self._local.highs = new_highs(self.settings)
         return h
 
     def _solve_highs(self, p, direction, cost, out):

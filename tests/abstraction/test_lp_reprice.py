@@ -316,7 +316,6 @@ def test_a_basis_solved_with_pivots_is_repriced_at_the_next_call(lps_and_costs, 
         assert surrogate_dual(lps, p, cost, lam[p]) >= optimum - 1e-9
 
 
-
 @pytest.mark.parametrize("presolve, setting, presolved", [(False, None, False), (True, None, True), (False, "on", True)])
 def test_highs_presolves_only_when_asked_and_reaches_the_same_optimum(lps_and_costs, monkeypatch, presolve, setting,
                                                                      presolved):
