@@ -58,6 +58,7 @@ import numpy as np
 
 from .._pytree import pytree_dataclass, static_field
 from .base import AbstractionMixin, check_adversary
+from .box_bounds import _fixed_point, _to_float
 from .clusters import IndexBoxes, cluster_members, max_lengths
 from .grid_clusters import GridClusters
 from .imdp import IMDP, interval_min, row_chunks
@@ -842,7 +843,9 @@ def informed_cluster_bounds(boxes: IndexBoxes, prob, rest, cells):
 
     ``members(c') inside q_c`` and ``members(c') meets q_c`` are decided per dimension on the
     index intervals (cyclic ones on periodic dimensions; the same test is exact on flat ones) and
-    on the sink flags, in O(C^2 n) per row instead of comparing member lists.
+    on the sink flags, in O(C^2 n) per row instead of comparing member lists. The sums of P_W
+    (and ``rest``) are exact in fixed point and rounded outward, as Lemma 1's
+    (``box_bounds._fixed_point``): P_low never above, P_up never below the exact sum.
     """
     cells = tuple(int(c) for c in np.asarray(cells))
     prob = jnp.asarray(prob)
@@ -870,12 +873,21 @@ def _box_bounds(start, length, sink, prob, rest, cells):
     grid_meet = ~empty_a & ~empty_b & jnp.all(meet_dim, axis=-1)
     inside = grid_inside & (~sa | sb)
     meets = grid_meet | (sa & sb)
-    return inside.astype(prob.dtype) @ prob, meets.astype(prob.dtype) @ prob + rest
+    return _exact_sums(inside, meets, prob, rest)
+
+
+def _exact_sums(inside, meets, prob, rest):
+    """``(sum of prob where inside, sum where meets + rest)`` over the last axis, summed exactly in
+    fixed point and rounded outward (down and up)."""
+    low = jnp.sum(jnp.where(inside, _fixed_point(prob, False), 0), axis=-1)
+    up = jnp.sum(jnp.where(meets, _fixed_point(prob, True), 0), axis=-1) + _fixed_point(rest, True)
+    return _to_float(low, False), _to_float(up, True)
 
 
 def member_cluster_bounds(members, clusters, prob, rest, sentinel):
     """P_low, P_up ``(R, A, E)`` of arbitrary clusters ``(R, A, E, L)`` (state ids, padding
-    ``sentinel``) from the member lists ``(R, A, C, K)`` of the reachable sets."""
+    ``sentinel``) from the member lists ``(R, A, C, K)`` of the reachable sets (sums rounded
+    outward as ``informed_cluster_bounds``')."""
     lows, ups = [], []
     for start in range(0, members.shape[0], _BOUND_ROWS_PER_CHUNK):
         m = members[start:start + _BOUND_ROWS_PER_CHUNK]
@@ -885,8 +897,9 @@ def member_cluster_bounds(members, clusters, prob, rest, sentinel):
         real = (m < sentinel)[:, :, None]
         inside = np.all(hit | ~real, axis=-1) & np.any(q < sentinel, axis=-1)[..., None]
         meets = np.any(hit & real, axis=-1)
-        lows.append(inside @ prob)
-        ups.append(meets @ prob + rest)
+        low, up = _exact_sums(inside, meets, prob, rest)
+        lows.append(np.asarray(low))
+        ups.append(np.asarray(up))
     return np.concatenate(lows), np.concatenate(ups)
 
 

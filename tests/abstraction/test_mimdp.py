@@ -1,6 +1,7 @@
 """MI-MDP abstraction (Definition 5 with informed clusters): bounds, inner problem, Theorem 2."""
 
 import warnings
+from fractions import Fraction
 
 import cvxpy as cp
 import jax
@@ -290,8 +291,13 @@ def test_cluster_bounds_brute_force(case, request):
             assert len(got) == len(stored), "a cluster is stored twice"
             assert set(got) == wanted
             for q, (lo, up) in got.items():
-                assert lo == pytest.approx(sum(p for m, p in zip(reach, prob) if m <= q), abs=1e-12)
-                assert up == pytest.approx(sum(p for m, p in zip(reach, prob) if m & q) + rest, abs=1e-12)
+                # the exact sums of the float64 P_W, as rationals: lo at most, up at least those,
+                # within the fixed-point grid (C terms of 2^-61) and one ulp of rounding outward
+                low = sum(Fraction(float(p)) for m, p in zip(reach, prob) if m <= q)
+                high = sum(Fraction(float(p)) for m, p in zip(reach, prob) if m & q) + Fraction(rest)
+                slack = Fraction(len(prob) + 1, 2 ** 61)
+                assert low - slack - Fraction(np.spacing(float(low))) <= Fraction(lo) <= low
+                assert high <= Fraction(up) <= high + slack + Fraction(np.spacing(float(high)))
 
 
 def test_extra_clusters_are_validated(small_clusters):
