@@ -23,8 +23,9 @@ modes alternating in one process so that both see the same load. A switch read w
 traced needs a new model per run, so its T_syn includes the compilation; a host-side switch
 (``reprice_after_pivots``, ``presolve``) uses one model, compiled by a first run not counted, and drops its LP
 solvers and warm starts before each run (``ClusterLPs.reset``): T_syn as Table 1's warm runs time it. Reports the
-medians of T_syn and of the LP wall time, the LP calls and HiGHS solves of the last run, and the
-largest difference of the bounds between the modes.
+medians of T_syn and of the LP wall time, the LP calls, HiGHS solves, re-priced LPs and adversary
+steps (``worst_case_transitions`` calls) of the last run, and the largest difference of the bounds
+between the modes.
 """
 
 from __future__ import annotations
@@ -57,12 +58,21 @@ def measure(row: int, repeats: int, switch: str, method: str | None) -> dict:
     module = importlib.import_module(module_name)
     default = getattr(module, flag)
     from smdpjax import synthesize
+    from smdpjax.abstraction.mimdp import MIMDP
+
+    steps = [0]
+    worst_case_transitions = MIMDP.worst_case_transitions
+
+    def counted(self, *args, **kwargs):
+        steps[0] += 1
+        return worst_case_transitions(self, *args, **kwargs)
 
     solve = lambda model: jax.block_until_ready(synthesize(model, horizon=study.horizon, objective=study.objective,
                                                            method=method))
     if on_host:
         shared = build("mimdp", study.state_grid, clusters, lp_backend="highs")
         solve(shared)  # compiles; not counted
+    MIMDP.worst_case_transitions = counted
     try:
         for _ in range(max(1, repeats)):
             for name, on in MODES.items():
@@ -74,14 +84,17 @@ def measure(row: int, repeats: int, switch: str, method: str | None) -> dict:
                 else:  # read when the loop is traced: a new model, a new trace
                     mimdp = build("mimdp", study.state_grid, clusters, lp_backend="highs")
                     before = {}
+                steps[0] = 0
                 start = time.perf_counter()
                 solutions[name] = solve(mimdp)
                 times[name].append(time.perf_counter() - start)
                 spent = lambda key: mimdp.lps.stats[key] - before.get(key, 0)
                 lp_times[name].append(float(spent("solve_seconds")))
-                stats[name] = dict(calls=int(spent("calls")), solves=int(spent("Optimal")), repriced=int(spent("repriced")))
+                stats[name] = dict(calls=int(spent("calls")), solves=int(spent("Optimal")), repriced=int(spent("repriced")),
+                                   steps=steps[0])
     finally:
         setattr(module, flag, default)
+        MIMDP.worst_case_transitions = worst_case_transitions
     ours, theirs = solutions["on"], solutions["off"]
     diff = max(float(np.max(np.abs(np.asarray(getattr(ours, f)) - np.asarray(getattr(theirs, f)))))
                for f in ("lower", "upper", "lower_optimal"))
@@ -101,7 +114,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
     results = []
     print(f"{'row':>4} {'mode':9} {'T_syn s':>8} {'LP s':>7} {'LP calls':>9} {'HiGHS':>7} {'repriced':>9} "
-          f"{'backups':>8} {'max diff':>9}")
+          f"{'steps':>6} {'backups':>8} {'max diff':>9}")
     for row in (int(r) for r in args.rows.split(",")):
         method = args.method or ("value_iteration" if args.switch == "greedy_reuse" else "policy_iteration")
         r = measure(row, args.repeats, args.switch, method)
@@ -109,7 +122,7 @@ def main(argv=None):
         for name in MODES:
             s = r["stats"][name]
             print(f"{row:>4} {name:9} {r['t_syn_s'][name]:>8.2f} {r['lp_s'][name]:>7.2f} {s['calls']:>9} "
-                  f"{s['solves']:>7} {s['repriced']:>9} {r['backups'][name]:>8} {r['max_bound_difference']:>9.1e}",
+                  f"{s['solves']:>7} {s['repriced']:>9} {s['steps']:>6} {r['backups'][name]:>8} {r['max_bound_difference']:>9.1e}",
                   flush=True)
     print("wrote", write_result(f"mimdp_switch_{args.switch}", args, rows=results))
 
